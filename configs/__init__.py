@@ -1,0 +1,1 @@
+"""Hydra configuration tree of qtl, installed as the package ``qtl.configs``."""

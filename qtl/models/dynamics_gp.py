@@ -1,0 +1,391 @@
+"""The GP dynamics model: one GPyTorch ``ExactGP`` batched over the E output dimensions (Eq. 1-3)."""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+import os
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import gpytorch
+import torch
+from gpytorch.constraints import GreaterThan
+from gpytorch.priors import SmoothedBoxPrior
+from linear_operator.utils.cholesky import psd_safe_cholesky
+from linear_operator.utils.errors import NotPSDError
+from torch import Tensor
+
+from qtl.models.hyperparameters import GPHyperparameters
+
+log = logging.getLogger(__name__)
+
+# Hard floor on σ_ε² (absolute): keeps K + σ_ε²I factorisable whatever the data scale.
+NOISE_VARIANCE_MIN = 1e-10
+# Soft floor on σ_ε² relative to the target variance: σ_ε² >= NOISE_TO_TARGET_MIN · var(Δ_e).
+NOISE_TO_TARGET_MIN = 1e-8
+# Bound on the signal-to-noise ratio α / σ_ε (PILCO's "curb"): 1/MAX_SNR <= α/σ_ε <= MAX_SNR.
+MAX_SNR = 500.0
+# Bound on ℓ_d relative to the spread of input d: std_d / MAX_LENGTHSCALE_RATIO <= ℓ_d <= ... · std_d.
+MAX_LENGTHSCALE_RATIO = 100.0
+# Width (in log units) of the Gaussian tails of the smoothed-box priors above.
+PRIOR_TAIL_WIDTH = 0.05
+# Spreads below this are treated as this (a constant input or output carries no scale).
+MIN_DATA_STD = 1e-6
+# Heuristic initial noise (PILCO): σ_ε² = var(Δ) / HEURISTIC_SNR².
+HEURISTIC_SNR = 10.0
+# Fewest training points a model accepts.
+MIN_TRAIN_POINTS = 3
+# Dataset size below which GPyTorch uses Cholesky; far above any exact-GP dataset we handle.
+EXACT_CHOLESKY_SIZE = 10**7
+# Fitting defaults.
+DEFAULT_RESTARTS = 3
+DEFAULT_MAX_ITER = 100
+# L-BFGS stops when the objective (log evidence per data point) changes by less than this.
+FIT_TOLERANCE_CHANGE = 1e-6
+# Standard deviation of the log-space perturbation of θ at each extra restart.
+RESTART_LOG_SCALE = 0.5
+
+CHECKPOINT_FORMAT = "qtl.DynamicsGP"
+CHECKPOINT_VERSION = 1
+
+
+@contextlib.contextmanager
+def exact_gp_settings() -> Iterator[None]:
+    """GPyTorch settings under which every solve and log-determinant is an exact Cholesky.
+
+    GPyTorch switches to conjugate gradients and Lanczos above 800 points by default; moment
+    matching and evidence maximisation in qtl need exact solves at every dataset size.
+    """
+    with (
+        gpytorch.settings.max_cholesky_size(EXACT_CHOLESKY_SIZE),
+        gpytorch.settings.fast_computations(
+            covar_root_decomposition=False, log_prob=False, solves=False
+        ),
+        gpytorch.settings.fast_pred_var(False),
+    ):
+        yield
+
+
+@dataclass(frozen=True)
+class GPPosteriorCache:
+    """What prediction at uncertain inputs needs of a fitted :class:`DynamicsGP`.
+
+    ``inputs``: `n x D` training inputs; ``K_inv``: `E x n x n`, (K + σ_ε²I)⁻¹ per output;
+    ``beta``: `E x n`, (K + σ_ε²I)⁻¹ y per output; ``hyperparameters``: θ.
+    """
+
+    inputs: Tensor
+    K_inv: Tensor
+    beta: Tensor
+    hyperparameters: GPHyperparameters
+
+
+def _check_data(train_x: Tensor, train_y: Tensor) -> None:
+    """Raise a ValueError naming the problem with a training set."""
+    if not isinstance(train_x, Tensor) or not isinstance(train_y, Tensor):
+        raise TypeError("train_x and train_y must be torch tensors")
+    if train_x.dim() != 2:
+        raise ValueError(f"train_x must be `n x D` (2-D), got shape {tuple(train_x.shape)}")
+    if train_y.dim() != 2:
+        raise ValueError(f"train_y must be `n x E` (2-D), got shape {tuple(train_y.shape)}")
+    if train_x.shape[0] != train_y.shape[0]:
+        raise ValueError(
+            f"train_x has {train_x.shape[0]} rows but train_y has {train_y.shape[0]}: "
+            "every input needs exactly one target"
+        )
+    if train_x.shape[0] < MIN_TRAIN_POINTS:
+        raise ValueError(
+            f"a DynamicsGP needs at least {MIN_TRAIN_POINTS} training points, got {train_x.shape[0]}"
+        )
+    if train_x.shape[1] < 1 or train_y.shape[1] < 1:
+        raise ValueError(f"empty input or output dimension: D={train_x.shape[1]}, E={train_y.shape[1]}")
+    for name, value in (("train_x", train_x), ("train_y", train_y)):
+        bad = (~torch.isfinite(value)).sum().item()
+        if bad:
+            raise ValueError(f"{name} contains {bad} non-finite value(s) (NaN or inf)")
+
+
+class DynamicsGP(gpytorch.models.ExactGP):
+    """Δ = x_{t+1} − x_t as E independent GPs in one batch (Eq. 1-3).
+
+    Zero mean, ARD squared-exponential kernel ``ScaleKernel(RBFKernel)`` with signal variance
+    α² and length-scales ℓ (Eq. 3), Gaussian likelihood with noise σ_ε², all with
+    ``batch_shape = [E]``. Inputs are `n x D` (state features and action), targets `n x E`.
+
+    Smoothed-box priors, centred on the spread of the data given at construction, keep
+    evidence maximisation well conditioned: ℓ_d within a factor ``MAX_LENGTHSCALE_RATIO`` of
+    std(x_d), α/σ_ε within ``MAX_SNR``, and σ_ε² above ``NOISE_TO_TARGET_MIN`` · var(Δ_e).
+    """
+
+    def __init__(
+        self,
+        train_x: Tensor,
+        train_y: Tensor,
+        hyperparameters: GPHyperparameters | None = None,
+        *,
+        dtype: torch.dtype = torch.float64,
+    ) -> None:
+        _check_data(train_x, train_y)
+        train_x = train_x.to(dtype)
+        train_y = train_y.to(dtype)
+        num_outputs, input_dim = train_y.shape[1], train_x.shape[1]
+        batch = torch.Size([num_outputs])
+        likelihood = gpytorch.likelihoods.GaussianLikelihood(
+            batch_shape=batch, noise_constraint=GreaterThan(NOISE_VARIANCE_MIN)
+        )
+        # ExactGP keeps `E x n x D` inputs and `E x n` targets: one GP per output dimension.
+        super().__init__(
+            train_x.expand(num_outputs, *train_x.shape), train_y.T.contiguous(), likelihood
+        )
+        self.mean_module = gpytorch.means.ZeroMean(batch_shape=batch)
+        self.covar_module = gpytorch.kernels.ScaleKernel(
+            gpytorch.kernels.RBFKernel(ard_num_dims=input_dim, batch_shape=batch),
+            batch_shape=batch,
+        )
+        self._register_data_priors(train_x, train_y)
+        self.to(dtype=dtype, device=train_x.device)
+        self.hyperparameters = (
+            hyperparameters if hyperparameters is not None else self.heuristic_hyperparameters()
+        )
+
+    # -- model -----------------------------------------------------------------------------
+
+    def forward(self, x: Tensor) -> gpytorch.distributions.MultivariateNormal:
+        """Prior of the latent Δ at `E x m x D` inputs."""
+        return gpytorch.distributions.MultivariateNormal(self.mean_module(x), self.covar_module(x))
+
+    def _register_data_priors(self, train_x: Tensor, train_y: Tensor) -> None:
+        """Smoothed-box priors on log(ℓ/std x), log(α/σ_ε) and log(σ_ε²/var Δ)."""
+        self.register_buffer("input_std", train_x.std(dim=0).clamp_min(MIN_DATA_STD))  # D
+        self.register_buffer("target_var", train_y.var(dim=0).clamp_min(MIN_DATA_STD**2))  # E
+        tail = PRIOR_TAIL_WIDTH
+        ls_bound = math.log(MAX_LENGTHSCALE_RATIO)
+        self.register_prior(
+            "lengthscale_ratio_prior",
+            SmoothedBoxPrior(-ls_bound, ls_bound, tail),
+            lambda m: (m.covar_module.base_kernel.lengthscale.squeeze(-2) / m.input_std).log(),
+        )
+        snr_bound = math.log(MAX_SNR)
+        self.register_prior(
+            "snr_prior",
+            SmoothedBoxPrior(-snr_bound, snr_bound, tail),
+            # `E x 1`: one log-SNR per output dimension.
+            lambda m: 0.5 * (m.covar_module.outputscale[:, None] / m.likelihood.noise).log(),
+        )
+        self.register_prior(
+            "noise_floor_prior",
+            SmoothedBoxPrior(math.log(NOISE_TO_TARGET_MIN), 0.0, tail),
+            lambda m: (m.likelihood.noise / m.target_var[:, None]).log(),
+        )
+
+    # -- θ: the seam of transfer -----------------------------------------------------------
+
+    @property
+    def num_outputs(self) -> int:
+        """E, the number of output dimensions."""
+        return self.train_targets.shape[0]
+
+    @property
+    def input_dim(self) -> int:
+        """D, the GP input dimension."""
+        return self.train_inputs[0].shape[-1]
+
+    @property
+    def train_x(self) -> Tensor:
+        """Training inputs `n x D`."""
+        return self.train_inputs[0][0]
+
+    @property
+    def train_y(self) -> Tensor:
+        """Training targets `n x E`."""
+        return self.train_targets.T
+
+    @property
+    def hyperparameters(self) -> GPHyperparameters:
+        """θ currently in the kernel and likelihood (detached copies)."""
+        return GPHyperparameters(
+            lengthscales=self.covar_module.base_kernel.lengthscale.detach().squeeze(-2).clone(),
+            signal_variance=self.covar_module.outputscale.detach().clone(),
+            noise_variance=self.likelihood.noise.detach().squeeze(-1).clone(),
+        )
+
+    @hyperparameters.setter
+    def hyperparameters(self, theta: GPHyperparameters) -> None:
+        expected = (self.num_outputs, self.input_dim)
+        if (theta.num_outputs, theta.input_dim) != expected:
+            raise ValueError(
+                f"hyperparameters are for E={theta.num_outputs} outputs and D={theta.input_dim} "
+                f"inputs, the model has E={expected[0]} and D={expected[1]}"
+            )
+        if (theta.noise_variance <= NOISE_VARIANCE_MIN).any():
+            raise ValueError(
+                f"noise_variance {theta.noise_variance.tolist()} is at or below the floor "
+                f"{NOISE_VARIANCE_MIN}"
+            )
+        theta = theta.to(dtype=self.train_x.dtype, device=self.train_x.device)
+        self.covar_module.base_kernel.lengthscale = theta.lengthscales[:, None, :]
+        self.covar_module.outputscale = theta.signal_variance
+        self.likelihood.noise = theta.noise_variance[:, None]
+        self.prediction_strategy = None  # θ changed: drop GPyTorch's cached solves
+
+    def heuristic_hyperparameters(self) -> GPHyperparameters:
+        """PILCO's initial θ: ℓ = std(x), α² = var(Δ), σ_ε² = α² / 100."""
+        return GPHyperparameters(
+            lengthscales=self.input_std.expand(self.num_outputs, -1).clone(),
+            signal_variance=self.target_var.clone(),
+            noise_variance=self.target_var / HEURISTIC_SNR**2,
+        )
+
+    # -- evidence maximisation ---------------------------------------------------------------
+
+    def log_evidence(self) -> Tensor:
+        """Per-output log marginal likelihood plus log priors, divided by n: `E`."""
+        mll = gpytorch.mlls.ExactMarginalLogLikelihood(self.likelihood, self)
+        with exact_gp_settings():
+            return mll(self(*self.train_inputs), self.train_targets)
+
+    def fit(
+        self,
+        *,
+        restarts: int = DEFAULT_RESTARTS,
+        max_iter: int = DEFAULT_MAX_ITER,
+        generator: torch.Generator | None = None,
+    ) -> Tensor:
+        """Evidence maximisation: L-BFGS from the current θ and ``restarts − 1`` perturbations of it.
+
+        Each output dimension keeps the θ of its best restart (the objective is separable over
+        outputs). Returns the final per-output objective `E` (log evidence + log prior, / n).
+        """
+        if restarts < 1:
+            raise ValueError(f"restarts must be >= 1, got {restarts}")
+        start = self.hyperparameters
+        best_theta = start.log().clone()  # E x (D + 2)
+        best_value = torch.full((self.num_outputs,), -math.inf, dtype=best_theta.dtype)
+        for attempt in range(restarts):
+            log_theta = start.log()
+            if attempt > 0:
+                noise = torch.randn(
+                    log_theta.shape, generator=generator, dtype=log_theta.dtype
+                ).to(log_theta.device)
+                log_theta = log_theta + RESTART_LOG_SCALE * noise
+            try:
+                self.hyperparameters = GPHyperparameters.from_log(log_theta)
+                value = self._optimise(max_iter)
+            except (NotPSDError, ValueError, RuntimeError) as err:
+                log.warning("GP fit restart %d failed and is discarded: %s", attempt, err)
+                continue
+            found = self.hyperparameters.log()
+            better = torch.isfinite(value) & (value > best_value)
+            best_theta[better] = found[better]
+            best_value = torch.where(better, value, best_value)
+        if not torch.isfinite(best_value).all():
+            failed = (~torch.isfinite(best_value)).nonzero().flatten().tolist()
+            raise RuntimeError(f"evidence maximisation failed for output dimension(s) {failed}")
+        self.hyperparameters = GPHyperparameters.from_log(best_theta)
+        return best_value
+
+    def _optimise(self, max_iter: int) -> Tensor:
+        """One L-BFGS run on the summed objective; returns the per-output objective `E`."""
+        self.train()
+        self.likelihood.train()
+        params = [p for p in self.parameters() if p.requires_grad]
+        optimiser = torch.optim.LBFGS(
+            params, lr=1.0, max_iter=max_iter, line_search_fn="strong_wolfe",
+            tolerance_change=FIT_TOLERANCE_CHANGE,
+        )
+
+        def closure() -> Tensor:
+            optimiser.zero_grad()
+            loss = -self.log_evidence().sum()
+            loss.backward()
+            return loss
+
+        optimiser.step(closure)
+        with torch.no_grad():
+            value = self.log_evidence()
+        self.eval()
+        self.likelihood.eval()
+        return value.detach()
+
+    # -- prediction --------------------------------------------------------------------------
+
+    def predict(self, x: Tensor, *, include_noise: bool = False) -> tuple[Tensor, Tensor]:
+        """Predictive mean and variance of Δ at deterministic inputs `m x D` (Eq. 1-2): `m x E` each."""
+        if x.dim() != 2 or x.shape[-1] != self.input_dim:
+            raise ValueError(f"x must be `m x {self.input_dim}`, got shape {tuple(x.shape)}")
+        if not torch.isfinite(x).all():
+            raise ValueError("x contains non-finite value(s) (NaN or inf)")
+        self.eval()
+        self.likelihood.eval()
+        x = x.to(self.train_x).expand(self.num_outputs, *x.shape)
+        with torch.no_grad(), exact_gp_settings():
+            dist = self(x)
+            if include_noise:
+                dist = self.likelihood(dist)
+            return dist.mean.T, dist.variance.T
+
+    def posterior_cache(self) -> GPPosteriorCache:
+        """(K + σ_ε²I)⁻¹ and β = (K + σ_ε²I)⁻¹y per output, for prediction at uncertain inputs."""
+        theta = self.hyperparameters
+        with torch.no_grad():
+            K = self.covar_module(self.train_inputs[0]).to_dense()  # E x n x n
+            K = K + theta.noise_variance[:, None, None] * torch.eye(
+                K.shape[-1], dtype=K.dtype, device=K.device
+            )
+            chol = psd_safe_cholesky(K)
+            beta = torch.cholesky_solve(self.train_targets.unsqueeze(-1), chol).squeeze(-1)
+            K_inv = torch.cholesky_inverse(chol)
+        return GPPosteriorCache(inputs=self.train_x, K_inv=K_inv, beta=beta, hyperparameters=theta)
+
+    # -- persistence -------------------------------------------------------------------------
+
+    def state(self) -> dict:
+        """Everything needed to rebuild this model (data and θ), as tensors and primitives."""
+        theta = self.hyperparameters
+        return {
+            "format": CHECKPOINT_FORMAT,
+            "version": CHECKPOINT_VERSION,
+            "train_x": self.train_x.detach().cpu(),
+            "train_y": self.train_y.detach().cpu(),
+            "lengthscales": theta.lengthscales.cpu(),
+            "signal_variance": theta.signal_variance.cpu(),
+            "noise_variance": theta.noise_variance.cpu(),
+        }
+
+    @classmethod
+    def from_state(cls, state: dict, *, dtype: torch.dtype = torch.float64) -> DynamicsGP:
+        """Rebuild a model from :meth:`state`; a malformed state raises ValueError."""
+        if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT:
+            raise ValueError("not a DynamicsGP state (missing or wrong 'format' entry)")
+        if state.get("version") != CHECKPOINT_VERSION:
+            raise ValueError(f"unsupported DynamicsGP state version {state.get('version')!r}")
+        missing = {"train_x", "train_y", "lengthscales", "signal_variance", "noise_variance"}
+        missing -= state.keys()
+        if missing:
+            raise ValueError(f"DynamicsGP state lacks {sorted(missing)}")
+        theta = GPHyperparameters(
+            state["lengthscales"].to(dtype),
+            state["signal_variance"].to(dtype),
+            state["noise_variance"].to(dtype),
+        )
+        return cls(state["train_x"], state["train_y"], theta, dtype=dtype)
+
+    def save(self, path: str | os.PathLike) -> None:
+        """Write data and θ to ``path`` (an ExactGP's state_dict alone lacks the data)."""
+        torch.save(self.state(), path)
+
+    @classmethod
+    def load(cls, path: str | os.PathLike, *, dtype: torch.dtype = torch.float64) -> DynamicsGP:
+        """Read a model written by :meth:`save`; a missing or corrupt file raises a clear error."""
+        if not os.path.isfile(path):
+            raise FileNotFoundError(f"no DynamicsGP checkpoint at {os.fspath(path)!r}")
+        try:
+            state = torch.load(path, map_location="cpu", weights_only=True)
+        except Exception as err:  # torch raises many types for a damaged file
+            raise ValueError(f"corrupt DynamicsGP checkpoint {os.fspath(path)!r}: {err}") from err
+        try:
+            return cls.from_state(state, dtype=dtype)
+        except ValueError as err:
+            raise ValueError(f"corrupt DynamicsGP checkpoint {os.fspath(path)!r}: {err}") from err

@@ -1,0 +1,110 @@
+"""The GP hyper-parameters θ of Eq. 3, per output dimension: the seam every transfer rule uses."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+
+@dataclass(frozen=True)
+class GPHyperparameters:
+    """θ = (ℓ_1..ℓ_D, α², σ_ε²) for each of the E output dimensions (Eq. 3).
+
+    ``lengthscales``: `E x D` (ℓ, not ℓ²); ``signal_variance``: `E` (α²);
+    ``noise_variance``: `E` (σ_ε²). All strictly positive.
+
+    Two flat views exist for the rules of the transfer package, both `E x (D + 2)` with
+    columns ``[ℓ_1, …, ℓ_D, α², σ_ε²]``: :meth:`natural` holds the values themselves and
+    :meth:`log` their logarithms.
+    """
+
+    lengthscales: Tensor
+    signal_variance: Tensor
+    noise_variance: Tensor
+
+    def __post_init__(self) -> None:
+        ls, sv, nv = self.lengthscales, self.signal_variance, self.noise_variance
+        if ls.dim() != 2:
+            raise ValueError(f"lengthscales must be `E x D`, got shape {tuple(ls.shape)}")
+        num_outputs = ls.shape[0]
+        for name, value in (("signal_variance", sv), ("noise_variance", nv)):
+            if value.shape != (num_outputs,):
+                raise ValueError(
+                    f"{name} must have shape ({num_outputs},) to match lengthscales "
+                    f"{tuple(ls.shape)}, got {tuple(value.shape)}"
+                )
+        for name, value in (
+            ("lengthscales", ls),
+            ("signal_variance", sv),
+            ("noise_variance", nv),
+        ):
+            if not torch.isfinite(value).all() or (value <= 0).any():
+                raise ValueError(f"{name} must be finite and strictly positive, got {value}")
+
+    @property
+    def num_outputs(self) -> int:
+        """E, the number of output dimensions (one kernel each)."""
+        return self.lengthscales.shape[0]
+
+    @property
+    def input_dim(self) -> int:
+        """D, the GP input dimension (one length-scale each)."""
+        return self.lengthscales.shape[1]
+
+    def natural(self) -> Tensor:
+        """θ as `E x (D + 2)`: ``[ℓ_1, …, ℓ_D, α², σ_ε²]`` per output."""
+        return torch.cat(
+            [self.lengthscales, self.signal_variance[:, None], self.noise_variance[:, None]], dim=-1
+        )
+
+    def log(self) -> Tensor:
+        """log θ as `E x (D + 2)`: ``[log ℓ_1, …, log ℓ_D, log α², log σ_ε²]`` per output."""
+        return self.natural().log()
+
+    @classmethod
+    def from_natural(cls, theta: Tensor) -> GPHyperparameters:
+        """Build θ from its natural `E x (D + 2)` form."""
+        if theta.dim() != 2 or theta.shape[-1] < 3:
+            raise ValueError(f"natural θ must be `E x (D + 2)` with D >= 1, got {tuple(theta.shape)}")
+        return cls(
+            lengthscales=theta[:, :-2].clone(),
+            signal_variance=theta[:, -2].clone(),
+            noise_variance=theta[:, -1].clone(),
+        )
+
+    @classmethod
+    def from_log(cls, log_theta: Tensor) -> GPHyperparameters:
+        """Build θ from its log `E x (D + 2)` form."""
+        return cls.from_natural(log_theta.exp())
+
+    def names(self) -> list[str]:
+        """Column names of the flat forms: ``lengthscale/in{i}``, ``signal_variance``, ``noise_variance``."""
+        return [f"lengthscale/in{i}" for i in range(self.input_dim)] + [
+            "signal_variance",
+            "noise_variance",
+        ]
+
+    def as_dict(self) -> dict[str, float]:
+        """Flat ``{"out{j}/<name>": value}`` mapping, for logs and CSV files."""
+        values = self.natural().detach().cpu()
+        return {
+            f"out{j}/{name}": float(values[j, i])
+            for j in range(self.num_outputs)
+            for i, name in enumerate(self.names())
+        }
+
+    def to(self, dtype: torch.dtype | None = None, device: torch.device | str | None = None) -> GPHyperparameters:
+        """The same θ on another dtype/device."""
+        return GPHyperparameters(
+            lengthscales=self.lengthscales.to(device=device, dtype=dtype),
+            signal_variance=self.signal_variance.to(device=device, dtype=dtype),
+            noise_variance=self.noise_variance.to(device=device, dtype=dtype),
+        )
+
+    def detach(self) -> GPHyperparameters:
+        """The same θ, cut from any autograd graph."""
+        return GPHyperparameters(
+            self.lengthscales.detach(), self.signal_variance.detach(), self.noise_variance.detach()
+        )

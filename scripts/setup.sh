@@ -1,0 +1,26 @@
+#!/usr/bin/env bash
+# Set up (or reuse) the project's virtual environment in .venv: torch==2.13.0 (CPU) first, then
+# qtl with its dev extras. Idempotent: a second run installs nothing when nothing changed.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+python=${PYTHON:-python3}
+if [ ! -x .venv/bin/python ]; then
+  "$python" -c 'import sys; sys.exit(sys.version_info < (3, 10))' \
+    || { echo "qtl needs Python >= 3.10 (found $("$python" --version 2>&1))" >&2; exit 1; }
+  "$python" -m venv .venv
+fi
+pip=(.venv/bin/python -m pip --disable-pip-version-check --quiet)
+
+# torch first and pinned: an unpinned torch resolved by pip downloads several GB of CUDA packages.
+if ! .venv/bin/python -c 'import sys, torch; sys.exit(torch.__version__.split("+")[0] != "2.13.0")' 2>/dev/null; then
+  "${pip[@]}" install torch==2.13.0
+fi
+
+# The project itself, editable, reinstalled only when pyproject.toml changed.
+stamp=.venv/.qtl-installed
+want=$(sha256sum pyproject.toml | cut -d' ' -f1)
+if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ] || ! .venv/bin/python -c 'import qtl, envs' 2>/dev/null; then
+  "${pip[@]}" install -e ".[dev]"
+  echo "$want" > "$stamp"
+fi

@@ -1,0 +1,118 @@
+"""Every id of `envs.ENV_IDS` is registered and honours the project's env contract.
+
+The contract (what the learner relies on), for every env:
+- `gymnasium.make(id)` works without a TimeLimit wrapper; `check_env(env.unwrapped)` passes;
+- `reset(seed=...)` is deterministic; `terminated` is False, `truncated` True exactly at step
+  `horizon`;
+- `info["state"]` is the noise-free state, shaped like the observation, and the reward of a step
+  is `reward_spec(info["state"])` for a `SaturatingReward` `reward_spec`;
+- `start_mean` / `start_std` give the start distribution per observation dimension;
+- `render_mode="rgb_array"` returns an `H x W x 3` `uint8` frame.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import warnings
+from pathlib import Path
+
+import gymnasium
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env
+
+import envs
+from envs.rewards import SaturatingReward
+
+ALL_IDS = sorted(envs.ENV_IDS)
+N_DETERMINISM_STEPS = 5
+
+
+def test_ids_are_registered_with_their_entry_points() -> None:
+    assert set(ALL_IDS) == {
+        "qtl/CartPoleSwingUp-v0",
+        "qtl/MountainCar-v0",
+        "qtl/Quadcopter-v0",
+        "qtl/Helicopter-v0",
+    }
+    for env_id, entry_point in envs.ENV_IDS.items():
+        assert gymnasium.spec(env_id).entry_point == entry_point
+
+
+def test_envs_package_does_not_import_qtl() -> None:
+    code = "import sys, envs, gymnasium\n"
+    code += "".join(f"gymnasium.make({i!r})\n" for i in ALL_IDS)
+    code += "assert not any(m == 'qtl' or m.startswith('qtl.') for m in sys.modules)\n"
+    subprocess.run([sys.executable, "-c", code], check=True)
+
+
+@pytest.mark.parametrize("env_id", ALL_IDS)
+@pytest.mark.parametrize("render_mode", [None, "rgb_array"])
+def test_check_env(env_id: str, render_mode: str | None) -> None:
+    env = gymnasium.make(env_id, render_mode=render_mode)
+    assert env.spec is not None and env.spec.max_episode_steps is None  # no TimeLimit wrapper
+    with warnings.catch_warnings():
+        # Infinite Box bounds and similar advice are warnings, not failures.
+        warnings.simplefilter("ignore")
+        check_env(env.unwrapped)
+
+
+@pytest.mark.parametrize("env_id", ALL_IDS)
+def test_reset_determinism(env_id: str) -> None:
+    env = gymnasium.make(env_id)
+    env.action_space.seed(0)
+    actions = [env.action_space.sample() for _ in range(N_DETERMINISM_STEPS)]
+
+    def rollout(seed: int) -> np.ndarray:
+        obs, _ = env.reset(seed=seed)
+        return np.array([obs] + [env.step(a)[0] for a in actions])
+
+    np.testing.assert_array_equal(rollout(11), rollout(11))
+    assert not np.array_equal(rollout(11), rollout(12))
+
+
+@pytest.mark.parametrize("env_id", ALL_IDS)
+def test_episode_contract(env_id: str) -> None:
+    env = gymnasium.make(env_id).unwrapped
+    obs_shape = env.observation_space.shape
+    horizon = env.horizon
+    assert isinstance(horizon, int) and horizon >= 1
+    assert isinstance(env.reward_spec, SaturatingReward)
+    assert env.reward_spec.state_dim == obs_shape[0]
+    assert np.shape(env.start_mean) == obs_shape and np.shape(env.start_std) == obs_shape
+    assert np.all(np.asarray(env.start_std) >= 0)
+
+    obs, info = env.reset(seed=0)
+    assert obs.shape == obs_shape and info["state"].shape == obs_shape
+    action = np.zeros(env.action_space.shape)
+    for t in range(1, horizon + 1):
+        obs, reward, terminated, truncated, info = env.step(action)
+        assert terminated is False
+        assert truncated is (t == horizon)
+        assert info["state"].shape == obs_shape
+        assert reward == env.reward_spec(info["state"])
+        assert 0.0 <= reward <= 1.0
+
+
+@pytest.mark.parametrize("env_id", ALL_IDS)
+def test_render_rgb_array(env_id: str) -> None:
+    env = gymnasium.make(env_id, render_mode="rgb_array")
+    env.reset(seed=0)
+    env.step(np.zeros(env.action_space.shape))
+    frame = env.render()
+    assert isinstance(frame, np.ndarray) and frame.dtype == np.uint8
+    assert frame.ndim == 3 and frame.shape[2] == 3 and frame.shape[0] > 0 and frame.shape[1] > 0
+    assert frame.std() > 0  # draws something
+
+
+def test_render_tasks_script_covers_every_id(tmp_path: Path) -> None:
+    """`scripts/render_tasks.py` writes one image and one page section per registered id."""
+    script = Path(__file__).resolve().parents[2] / "scripts" / "render_tasks.py"
+    subprocess.run([sys.executable, str(script), "--docs-dir", str(tmp_path)], check=True)
+    page = (tmp_path / "tasks.md").read_text(encoding="utf-8")
+    for env_id in ALL_IDS:
+        assert f"(`{env_id}`)" in page
+    images = sorted(p.name for p in (tmp_path / "img").glob("*.png"))
+    assert len(images) == len(ALL_IDS)
+    assert all(f"](img/{name})" in page for name in images)
