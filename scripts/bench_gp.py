@@ -18,7 +18,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-import benchlib  # noqa: E402
+import benchlib
 
 INPUT_DIM, OUTPUTS = 6, 4
 NOISE_STD = 0.05
