@@ -1,15 +1,39 @@
 """Gymnasium environments of the paper's transfer benchmarks, registered under ``qtl/``.
 
-Importing this package registers the ids; it never imports :mod:`qtl`.
+Importing this package registers the ids (lazily: an env module is imported by
+``gymnasium.make``, or on first access to one of its names here); it never imports :mod:`qtl`.
+
+    >>> import gymnasium, envs
+    >>> env = gymnasium.make("qtl/CartPoleSwingUp-v0", pole_mass=2.0)
+    >>> envs.CartPoleSwingUpEnv is type(env.unwrapped)
+    True
 """
 
 from __future__ import annotations
 
+import importlib
+from typing import TYPE_CHECKING, Any
+
 import gymnasium
 
-from envs.rewards import SaturatingReward
+from envs.rewards import SaturatingReward, augment_angles
 
-__all__ = ["ENV_IDS", "SaturatingReward"]
+if TYPE_CHECKING:
+    from envs.aircraft import Autopilot, HelicopterEnv, QuadcopterEnv, ground_effect_factor
+    from envs.cartpole import CartPoleSwingUpEnv
+    from envs.mountain_car import MountainCarEnv
+
+__all__ = [
+    "ENV_IDS",
+    "Autopilot",
+    "CartPoleSwingUpEnv",
+    "HelicopterEnv",
+    "MountainCarEnv",
+    "QuadcopterEnv",
+    "SaturatingReward",
+    "augment_angles",
+    "ground_effect_factor",
+]
 
 ENV_IDS: dict[str, str] = {
     "qtl/CartPoleSwingUp-v0": "envs.cartpole:CartPoleSwingUpEnv",
@@ -17,6 +41,31 @@ ENV_IDS: dict[str, str] = {
     "qtl/Quadcopter-v0": "envs.aircraft:QuadcopterEnv",
     "qtl/Helicopter-v0": "envs.aircraft:HelicopterEnv",
 }
+
+# Public names defined in the env modules, imported on first access (PEP 562) so that
+# `import envs` costs no more than gymnasium and numpy.
+_LAZY: dict[str, str] = {
+    "CartPoleSwingUpEnv": "envs.cartpole",
+    "MountainCarEnv": "envs.mountain_car",
+    "QuadcopterEnv": "envs.aircraft",
+    "HelicopterEnv": "envs.aircraft",
+    "Autopilot": "envs.aircraft",
+    "ground_effect_factor": "envs.aircraft",
+}
+
+
+def __getattr__(name: str) -> Any:
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value  # later look-ups skip __getattr__
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))
+
 
 for _env_id, _entry_point in ENV_IDS.items():
     if _env_id not in gymnasium.registry:

@@ -11,6 +11,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from itertools import pairwise
 
+import gymnasium
 import numpy as np
 
 Color = tuple[int, int, int]
@@ -31,6 +32,11 @@ SKY: Color = (235, 243, 250)
 _AA_HALF_WIDTH = 0.5
 # Arrow heads are this many shaft widths long (and twice that wide).
 _ARROW_HEAD_WIDTHS = 2.5
+
+
+def warn_no_render_mode() -> None:
+    """Gymnasium's warning for ``render()`` on an env made without a render mode."""
+    gymnasium.logger.warn("render() called without a render_mode; make the env with render_mode='rgb_array'")
 
 
 class Canvas:

@@ -19,7 +19,6 @@ from __future__ import annotations
 import math
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
-from numbers import Integral, Real
 from typing import Any, ClassVar
 
 import gymnasium
@@ -27,6 +26,18 @@ import numpy as np
 from gymnasium import spaces
 
 from envs import _render
+from envs._rk4 import n_substeps, rk4_step
+from envs._validation import (
+    action_vector,
+    check_render_mode,
+    finite_array,
+    finite_tuple,
+    nonnegative,
+    positive,
+    positive_integer,
+    require,
+    state_option,
+)
 from envs.rewards import SaturatingReward
 
 __all__ = [
@@ -101,9 +112,6 @@ AUTOPILOT_MAX_HORIZONTAL_ACCEL = GRAVITY * math.tan(MAX_TILT_SETPOINT)  # m/s²
 AUTOPILOT_MAX_CLIMB_ACCEL = 0.5 * GRAVITY  # m/s², up or down
 AUTOPILOT_MIN_TILT_COSINE = 0.5  # bounds the 1 / (cos φ cos θ) thrust compensation
 
-# Relative slack when dividing dt into RK4 sub-steps, so 0.1 / 0.005 gives 20 and not 21.
-_SUBSTEP_ROUNDING_SLACK = 1e-9
-
 # Rendering: a top view (x–y) and a side view (x–z) side by side, vehicles drawn to scale.
 _RENDER_VIEW_WIDTH_PX = 360
 _RENDER_XY_RANGE = (-2.5, 1.5)  # m, both horizontal axes
@@ -113,38 +121,6 @@ _RENDER_LINE = 0.035  # m
 _RENDER_TARGET_ARM = 0.12  # m
 _RENDER_GRID_STEP = 1.0  # m
 _RENDER_CIRCLE_POINTS = 24
-
-
-def _require(ok: bool, name: str, value: object, rule: str) -> None:
-    if not ok:
-        raise ValueError(f"{name} must be {rule}, got {value!r}")
-
-
-def _is_real(value: object) -> bool:
-    return isinstance(value, Real) and not isinstance(value, bool) and math.isfinite(value)
-
-
-def _positive(name: str, value: object) -> float:
-    _require(_is_real(value) and value > 0, name, value, "a finite number > 0")
-    return float(value)  # type: ignore[arg-type]
-
-
-def _nonnegative(name: str, value: object) -> float:
-    _require(_is_real(value) and value >= 0, name, value, "a finite number >= 0")
-    return float(value)  # type: ignore[arg-type]
-
-
-def _vector(name: str, value: object, dim: int, *, positive: bool) -> tuple[float, ...]:
-    """`dim` finite numbers, each > 0 (`positive`) or >= 0, as a tuple of floats."""
-    rule = f"{dim} finite numbers {'> 0' if positive else '>= 0'}"
-    try:
-        arr = np.asarray(value, dtype=float)
-    except (TypeError, ValueError):
-        arr = np.full(0, np.nan)
-    ok = arr.shape == (dim,) and bool(np.all(np.isfinite(arr)))
-    ok = ok and bool(np.all(arr > 0) if positive else np.all(arr >= 0))
-    _require(ok, name, value, rule)
-    return tuple(float(v) for v in arr)
 
 
 def _clip(value: float, limit: float) -> float:
@@ -169,8 +145,9 @@ class AircraftEnv(gymnasium.Env, ABC):
     """Shared interface and rigid-body core of :class:`QuadcopterEnv` and :class:`HelicopterEnv`.
 
     A vehicle subclass supplies its body-frame force and torque and the derivative of its four
-    hidden actuator states (`_wrench`), its actuator state at rest and in hover, its collective
-    law (`collective_for_thrust`), its trim roll and its drawing. The base class integrates
+    hidden actuator states (`_wrench`), its actuator state at rest and in hover, its trim roll
+    and its drawing; both share the linear collective law T = (1 + c) / 2 · `max_thrust`
+    (`collective_for_thrust`). The base class integrates
 
         ṗ = v,  v̇ = R F_b / m − g e_z,  η̇ = E(η) ω,  J ω̇ = τ_b − ω × J ω
 
@@ -210,48 +187,26 @@ class AircraftEnv(gymnasium.Env, ABC):
         target: Sequence[float],
         render_mode: str | None,
     ) -> None:
-        self.mass = _positive("mass", mass)
-        self.inertia = _vector("inertia", inertia, 3, positive=True)
-        self.rotor_radius = _positive("rotor_radius", rotor_radius)
-        self.rotor_height = _nonnegative("rotor_height", rotor_height)
-        self.max_thrust = _positive("max_thrust", max_thrust)
-        _require(isinstance(ground_effect, bool), "ground_effect", ground_effect, "True or False")
+        self.mass = positive("mass", mass)
+        self.inertia = finite_tuple("inertia", inertia, 3, positive=True)
+        self.rotor_radius = positive("rotor_radius", rotor_radius)
+        self.rotor_height = nonnegative("rotor_height", rotor_height)
+        self.max_thrust = positive("max_thrust", max_thrust)
+        require(isinstance(ground_effect, bool), "ground_effect", ground_effect, "True or False")
         self.ground_effect = ground_effect
-        self.dt = _positive("dt", dt)
-        integrator_dt = _positive("integrator_dt", integrator_dt)
-        _require(integrator_dt <= dt, "integrator_dt", integrator_dt, f"<= dt = {dt}")
-        _require(
-            isinstance(horizon, Integral) and not isinstance(horizon, bool) and horizon >= 1,
-            "horizon",
-            horizon,
-            "an integer >= 1",
-        )
-        self.obs_noise_std = _nonnegative("obs_noise_std", obs_noise_std)
-        reward_width = _positive("reward_width", reward_width)
-        start_xy_std = _nonnegative("start_xy_std", start_xy_std)
-        start_yaw_std = _nonnegative("start_yaw_std", start_yaw_std)
-        try:
-            tgt = np.asarray(target, dtype=float)
-        except (TypeError, ValueError):
-            tgt = np.full(0, np.nan)
-        _require(
-            tgt.shape == (3,) and bool(np.all(np.isfinite(tgt))),
-            "target",
-            target,
-            "3 finite numbers",
-        )
-        self.target = tgt.copy()
-        _require(
-            render_mode is None or render_mode in self.metadata["render_modes"],
-            "render_mode",
-            render_mode,
-            f"None or one of {self.metadata['render_modes']}",
-        )
+        self.dt = positive("dt", dt)
+        integrator_dt = positive("integrator_dt", integrator_dt)
+        require(integrator_dt <= dt, "integrator_dt", integrator_dt, f"<= dt = {dt}")
+        self.horizon = positive_integer("horizon", horizon)
+        self.obs_noise_std = nonnegative("obs_noise_std", obs_noise_std)
+        reward_width = positive("reward_width", reward_width)
+        start_xy_std = nonnegative("start_xy_std", start_xy_std)
+        start_yaw_std = nonnegative("start_yaw_std", start_yaw_std)
+        self.target = finite_array("target", target, 3, "3 finite numbers")
+        self.render_mode = check_render_mode(render_mode, self.metadata["render_modes"])
 
-        self.n_substeps = max(1, math.ceil(self.dt / integrator_dt - _SUBSTEP_ROUNDING_SLACK))
+        self.n_substeps = n_substeps(self.dt, integrator_dt)
         self.integrator_dt = self.dt / self.n_substeps
-        self.horizon = int(horizon)
-        self.render_mode = render_mode
         self.metadata = {**self.metadata, "render_fps": max(1, round(1.0 / self.dt))}
 
         self.start_mean = np.zeros(OBS_DIM)
@@ -276,13 +231,7 @@ class AircraftEnv(gymnasium.Env, ABC):
         weight[list(POSITION_DIMS), list(POSITION_DIMS)] = 1.0
         full_target = np.zeros(OBS_DIM)
         full_target[list(POSITION_DIMS)] = target
-        return SaturatingReward(
-            state_dim=OBS_DIM,
-            angle_dims=(),
-            target=tuple(float(v) for v in full_target),
-            weight=tuple(tuple(float(v) for v in row) for row in weight),
-            width=width,
-        )
+        return SaturatingReward(state_dim=OBS_DIM, angle_dims=(), target=full_target, weight=weight, width=width)
 
     # ---- vehicle interface -------------------------------------------------------------------
     @abstractmethod
@@ -309,9 +258,12 @@ class AircraftEnv(gymnasium.Env, ABC):
     def _hover_actuators(self) -> list[float]:
         """Actuator state holding the weight level out of ground effect (`options["state"]`)."""
 
-    @abstractmethod
     def collective_for_thrust(self, thrust: float) -> float:
-        """The collective whose steady rotor thrust out of ground effect is `thrust` (N)."""
+        """The collective whose steady rotor thrust out of ground effect is `thrust` (N).
+
+        The inverse of the collective law T = (1 + c) / 2 · `max_thrust` of both vehicles.
+        """
+        return 2.0 * thrust / self.max_thrust - 1.0
 
     @property
     @abstractmethod
@@ -377,14 +329,8 @@ class AircraftEnv(gymnasium.Env, ABC):
 
     def _integrate(self, s: list[float], command: tuple[float, float, float, float]) -> list[float]:
         """RK4 over one control period with the command held, ground contact after each sub-step."""
-        h = self.integrator_dt
-        f = self._derivative
         for _ in range(self.n_substeps):
-            k1 = f(s, command)
-            k2 = f([a + 0.5 * h * k for a, k in zip(s, k1, strict=True)], command)
-            k3 = f([a + 0.5 * h * k for a, k in zip(s, k2, strict=True)], command)
-            k4 = f([a + h * k for a, k in zip(s, k3, strict=True)], command)
-            new = [a + h / 6.0 * (b + 2.0 * c + 2.0 * d + e) for a, b, c, d, e in zip(s, k1, k2, k3, k4, strict=True)]
+            new = rk4_step(self._derivative, s, self.integrator_dt, command)
             if new[2] <= 0.0:
                 # At rest on the ground: hold x, y and yaw, level, no motion; actuators run on.
                 new[:12] = [s[0], s[1], 0.0, 0.0, 0.0, s[5], 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]
@@ -463,10 +409,8 @@ class AircraftEnv(gymnasium.Env, ABC):
         state with z < 0 is refused.
         """
         super().reset(seed=seed)
-        if options is not None and options.get("state") is not None:
-            state = np.asarray(options["state"], dtype=float)
-            if state.shape != (OBS_DIM,) or not np.all(np.isfinite(state)) or state[2] < 0:
-                raise ValueError(f"options['state'] must be {OBS_DIM} finite numbers, z >= 0, got {state}")
+        state = state_option(options, OBS_DIM, condition=lambda s: s[2] >= 0, rule="z >= 0")
+        if state is not None:
             actuators = self._hover_actuators() if state[2] > 0 else self._rest_actuators()
             self._s = [*(float(v) for v in state[:9]), *self._body_rates(state), *actuators]
         else:
@@ -479,9 +423,7 @@ class AircraftEnv(gymnasium.Env, ABC):
         """Hold the action for `dt`; the reward scores the noise-free successor state."""
         if self._s is None:
             raise gymnasium.error.ResetNeeded("call reset() before step()")
-        a = np.asarray(action, dtype=float).reshape(-1)
-        if a.shape != (ACTION_DIM,) or not np.all(np.isfinite(a)):
-            raise ValueError(f"action must be {ACTION_DIM} finite numbers, got {action!r}")
+        a = action_vector(action, ACTION_DIM)
         self._s = self._integrate(self._s, self.command(a))
         self._steps += 1
         reward = float(self.reward_spec(self._state12()))
@@ -497,7 +439,7 @@ class AircraftEnv(gymnasium.Env, ABC):
         grid in both. The views span x, y in [−2.5, 1.5] m and z in [−0.4, 3.6] m.
         """
         if self.render_mode is None:
-            gymnasium.logger.warn("render() called without a render_mode; make the env with render_mode='rgb_array'")
+            _render.warn_no_render_mode()
             return None
         s = self._s
         if s is None:
@@ -637,16 +579,17 @@ class QuadcopterEnv(AircraftEnv):
 
     At rest on the ground at the origin, rotors stopped, with x, y ~ N(0, `start_xy_std`²) and
     ψ ~ N(0, `start_yaw_std`²) (`start_mean`, `start_std`). `reset(options={"state": s})`
-    starts from the 12-D state `s` instead (rotors in hover trim if z > 0).
+    starts from the 12-D state `s` (layout of the observation, z >= 0) instead: the hidden rotor
+    speeds start in hover trim if z > 0 and stopped if z = 0.
 
-    ## Episode Termination and Truncation
+    ## Episode Truncation
 
     The episode never terminates (a landing or a hard touch-down ends at rest on the ground); it
     is truncated after `horizon` steps (default 200, i.e. 20 s).
 
     ## Arguments
 
-    - `mass`: kg (default 0.5).
+    - `mass`: vehicle mass in kg (default 0.5).
     - `inertia`: principal moments (J_x, J_y, J_z) in kg m² (default (3.65e−3, 3.68e−3, 7.03e−3)).
     - `arm_length`: centre-to-rotor distance in m (default 0.17).
     - `thrust_coefficient`: k_f in N s² (default 5.57e−6).
@@ -661,12 +604,14 @@ class QuadcopterEnv(AircraftEnv):
     - `ground_effect`: apply the ground effect (default True).
     - `attitude_kp`, `attitude_kd`: inner-loop gains (roll, pitch, yaw) in rad/s² per rad and
       per rad/s (default (225, 225, 25) and (21, 21, 7)).
-    - `dt`: control period in s (default 0.1); `integrator_dt`: largest RK4 sub-step in s
-      (default 0.005); `dt` is split into ceil(`dt` / `integrator_dt`) equal sub-steps.
+    - `dt`: control period in s (default 0.1).
+    - `integrator_dt`: largest RK4 sub-step in s (default 0.005); `dt` is split into
+      ceil(`dt` / `integrator_dt`) equal sub-steps.
     - `horizon`: steps until truncation (default 200).
     - `obs_noise_std`: std of the Gaussian observation noise (default 0).
     - `reward_width`: σ_c in m (default 0.25).
-    - `start_xy_std`, `start_yaw_std`: start spread in m and rad (default 0.1 each).
+    - `start_xy_std`: std of the start position x, y in m (default 0.1).
+    - `start_yaw_std`: std of the start yaw ψ in rad (default 0.1).
     - `target`: (x*, y*, z*) in m (default (−1, −1, 1.5)).
     - `render_mode`: `None` or `"rgb_array"`.
 
@@ -724,14 +669,14 @@ class QuadcopterEnv(AircraftEnv):
             target=target,
             render_mode=render_mode,
         )
-        self.arm_length = _positive("arm_length", arm_length)
-        self.thrust_coefficient = _positive("thrust_coefficient", thrust_coefficient)
-        self.torque_coefficient = _nonnegative("torque_coefficient", torque_coefficient)
-        self.motor_time_constant = _positive("motor_time_constant", motor_time_constant)
-        self.max_rotor_speed = _positive("max_rotor_speed", max_rotor_speed)
-        self.drag_coefficient = _vector("drag_coefficient", drag_coefficient, 3, positive=False)
-        self.attitude_kp = _vector("attitude_kp", attitude_kp, 3, positive=False)
-        self.attitude_kd = _vector("attitude_kd", attitude_kd, 3, positive=False)
+        self.arm_length = positive("arm_length", arm_length)
+        self.thrust_coefficient = positive("thrust_coefficient", thrust_coefficient)
+        self.torque_coefficient = nonnegative("torque_coefficient", torque_coefficient)
+        self.motor_time_constant = positive("motor_time_constant", motor_time_constant)
+        self.max_rotor_speed = positive("max_rotor_speed", max_rotor_speed)
+        self.drag_coefficient = finite_tuple("drag_coefficient", drag_coefficient, 3, positive=False)
+        self.attitude_kp = finite_tuple("attitude_kp", attitude_kp, 3, positive=False)
+        self.attitude_kd = finite_tuple("attitude_kd", attitude_kd, 3, positive=False)
         # Motors on the diagonals at (±d, ±d), d = arm / √2; spin directions +, −, +, −.
         self._arm_projection = self.arm_length / math.sqrt(2.0)
         self._yaw_per_thrust = self.torque_coefficient / self.thrust_coefficient  # κ = k_m / k_f, m
@@ -799,9 +744,6 @@ class QuadcopterEnv(AircraftEnv):
     def _hover_actuators(self) -> list[float]:
         return [math.sqrt(self.mass * GRAVITY / (N_ACTUATORS * self.thrust_coefficient))] * N_ACTUATORS
 
-    def collective_for_thrust(self, thrust: float) -> float:
-        return 2.0 * thrust / self.max_thrust - 1.0
-
     @property
     def trim_roll(self) -> float:
         return 0.0
@@ -827,7 +769,9 @@ class HelicopterEnv(AircraftEnv):
     Take-off and hover of a small single-rotor helicopter, the target task of the paper's
     Section 5.3: start on the ground at the origin, fly to `target` = (−1, −1, 1.5) m and hold
     it. A near-hover model in the style of the XCell Tempest model of Abbeel et al. (2006), put
-    on a rigid body of mass `mass` and inertia `inertia`:
+    on a rigid body of mass `mass` and inertia `inertia`.
+
+    The forces and moments:
 
     - main-rotor thrust along body z, linear in the lagged collective pitch,
       T = (1 + δ_col) / 2 · `max_thrust` (hover at δ_col ≈ 0 for the default mass), times the
@@ -877,15 +821,17 @@ class HelicopterEnv(AircraftEnv):
 
     At rest on the ground at the origin, collective at −1 (no thrust), cyclic and pedal centred,
     with x, y ~ N(0, `start_xy_std`²) and ψ ~ N(0, `start_yaw_std`²) (`start_mean`,
-    `start_std`). `reset(options={"state": s})` starts from the 12-D state `s` instead.
+    `start_std`). `reset(options={"state": s})` starts from the 12-D state `s` (layout of the
+    observation, z >= 0) instead: the hidden actuators start in hover trim (collective holding
+    the weight, pedal against the main-rotor torque) if z > 0 and at rest if z = 0.
 
-    ## Episode Termination and Truncation
+    ## Episode Truncation
 
     The episode never terminates; it is truncated after `horizon` steps (default 200, 20 s).
 
     ## Arguments
 
-    - `mass`: kg (default 5.0).
+    - `mass`: vehicle mass in kg (default 5.0).
     - `inertia`: principal moments (J_x, J_y, J_z) in kg m² (default (0.18, 0.34, 0.28)).
     - `max_thrust`: main-rotor thrust in N at collective +1 (default 2 × 5 × 9.81).
     - `velocity_damping`: (X_u, Y_v, Z_w) in 1/s (default (0.18, 0.43, 0.49)).
@@ -956,15 +902,15 @@ class HelicopterEnv(AircraftEnv):
             target=target,
             render_mode=render_mode,
         )
-        self.velocity_damping = _vector("velocity_damping", velocity_damping, 3, positive=False)
-        self.rate_damping = _vector("rate_damping", rate_damping, 3, positive=False)
-        self.rotor_time_constant = _positive("rotor_time_constant", rotor_time_constant)
-        self.cyclic_moment = _vector("cyclic_moment", cyclic_moment, 2, positive=True)
-        self.tail_moment = _positive("tail_moment", tail_moment)
-        self.tail_arm = _positive("tail_arm", tail_arm)
-        self.main_rotor_torque_ratio = _nonnegative("main_rotor_torque_ratio", main_rotor_torque_ratio)
-        self.attitude_kp = _vector("attitude_kp", attitude_kp, 3, positive=False)
-        self.attitude_kd = _vector("attitude_kd", attitude_kd, 3, positive=False)
+        self.velocity_damping = finite_tuple("velocity_damping", velocity_damping, 3, positive=False)
+        self.rate_damping = finite_tuple("rate_damping", rate_damping, 3, positive=False)
+        self.rotor_time_constant = positive("rotor_time_constant", rotor_time_constant)
+        self.cyclic_moment = finite_tuple("cyclic_moment", cyclic_moment, 2, positive=True)
+        self.tail_moment = positive("tail_moment", tail_moment)
+        self.tail_arm = positive("tail_arm", tail_arm)
+        self.main_rotor_torque_ratio = nonnegative("main_rotor_torque_ratio", main_rotor_torque_ratio)
+        self.attitude_kp = finite_tuple("attitude_kp", attitude_kp, 3, positive=False)
+        self.attitude_kd = finite_tuple("attitude_kd", attitude_kd, 3, positive=False)
 
     def _wrench(
         self,
@@ -1019,9 +965,6 @@ class HelicopterEnv(AircraftEnv):
             0.0,
             self.main_rotor_torque_ratio * weight / self.tail_moment,
         ]
-
-    def collective_for_thrust(self, thrust: float) -> float:
-        return 2.0 * thrust / self.max_thrust - 1.0
 
     @property
     def trim_roll(self) -> float:
@@ -1096,7 +1039,7 @@ class Autopilot:
             raise ValueError(f"env must be a quadcopter or helicopter env, got {type(vehicle).__name__}")
         self.vehicle = vehicle
         given = {"kp_xy": kp_xy, "kd_xy": kd_xy, "kp_z": kp_z, "kd_z": kd_z}
-        gains = {k: (vehicle.AUTOPILOT_GAINS[k] if v is None else _nonnegative(k, v)) for k, v in given.items()}
+        gains = {k: (vehicle.AUTOPILOT_GAINS[k] if v is None else nonnegative(k, v)) for k, v in given.items()}
         self.kp_xy, self.kd_xy = gains["kp_xy"], gains["kd_xy"]
         self.kp_z, self.kd_z = gains["kp_z"], gains["kd_z"]
         self.target = vehicle.target.copy() if target is None else np.asarray(target, dtype=float)

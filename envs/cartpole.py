@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from numbers import Integral, Real
+from collections.abc import Sequence
 from typing import Any, ClassVar
 
 import gymnasium
@@ -11,6 +11,17 @@ import numpy as np
 from gymnasium import spaces
 
 from envs import _render
+from envs._rk4 import n_substeps, rk4_step
+from envs._validation import (
+    action_vector,
+    check_render_mode,
+    finite_array,
+    nonnegative,
+    positive,
+    positive_integer,
+    require,
+    state_option,
+)
 from envs.rewards import SaturatingReward
 
 STATE_DIM = 4
@@ -31,35 +42,12 @@ DEFAULT_START_STD = 0.1  # x_0 ~ N(0, 0.1² I)
 DEFAULT_OBS_NOISE_STD = 0.0
 DEFAULT_REWARD_WIDTH = 0.25  # σ_c, m
 
-# Relative slack when dividing dt into RK4 sub-steps, so 0.1 / 0.01 gives 10 and not 11.
-_SUBSTEP_ROUNDING_SLACK = 1e-9
-
 # Rendering: a window on the origin that follows the cart only when the cart would leave it.
 _RENDER_WIDTH_PX = 600
 _RENDER_HALF_WIDTH = 2.4  # m of track either side of the view centre
 _RENDER_CART_SIZE = (0.4, 0.2)  # m
 _RENDER_POLE_WIDTH = 0.05  # m
 _RENDER_MARGIN = 0.25  # m around the swept disc of the pole
-
-
-def _require(ok: bool, name: str, value: object, rule: str) -> None:
-    if not ok:
-        raise ValueError(f"{name} must be {rule}, got {value!r}")
-
-
-def _is_real(value: object) -> bool:
-    return isinstance(value, Real) and not isinstance(value, bool) and math.isfinite(value)
-
-
-def _per_dimension(value: float | tuple[float, ...], dim: int, name: str) -> np.ndarray:
-    """A scalar or `dim` finite non-negative numbers as a `dim` array, else ValueError."""
-    try:
-        arr = np.asarray(value, dtype=float)
-    except (TypeError, ValueError):
-        arr = np.full(0, np.nan)
-    ok = arr.shape in ((), (dim,)) and bool(np.all(np.isfinite(arr))) and bool(np.all(arr >= 0))
-    _require(ok, name, value, f"a finite number >= 0 or {dim} of them")
-    return np.broadcast_to(arr, (dim,)).copy()
 
 
 class CartPoleSwingUpEnv(gymnasium.Env):
@@ -113,10 +101,11 @@ class CartPoleSwingUpEnv(gymnasium.Env):
 
     ## Starting State
 
-    x_0 ~ N(0, `start_std`² I): the pole hanging down, the cart near the origin, nearly at rest.
-    `reset(options={"state": s})` starts from the given state `s` instead.
+    x_0 ~ N(0, diag(`start_std`²)), by default N(0, 0.1² I): the pole hanging down, the cart near
+    the origin, nearly at rest. `reset(options={"state": s})` starts from the given state
+    s = [x, ẋ, θ, θ̇] (4 finite numbers) instead.
 
-    ## Episode Termination and Truncation
+    ## Episode Truncation
 
     The episode never terminates (the swing-up has no terminal states); it is truncated after
     `horizon` steps (default 50, i.e. 5 s).
@@ -168,54 +157,34 @@ class CartPoleSwingUpEnv(gymnasium.Env):
         reward_width: float = DEFAULT_REWARD_WIDTH,
         render_mode: str | None = None,
     ) -> None:
-        for name, value in (
-            ("cart_mass", cart_mass),
-            ("pole_mass", pole_mass),
-            ("pole_length", pole_length),
-            ("max_force", max_force),
-            ("dt", dt),
-            ("integrator_dt", integrator_dt),
-            ("reward_width", reward_width),
-        ):
-            _require(_is_real(value) and value > 0, name, value, "a finite number > 0")
-        for name, value in (
-            ("friction", friction),
-            ("gravity", gravity),
-            ("obs_noise_std", obs_noise_std),
-        ):
-            _require(_is_real(value) and value >= 0, name, value, "a finite number >= 0")
-        _require(integrator_dt <= dt, "integrator_dt", integrator_dt, f"<= dt = {dt}")
-        _require(
-            isinstance(horizon, Integral) and not isinstance(horizon, bool) and horizon >= 1,
-            "horizon",
-            horizon,
-            "an integer >= 1",
-        )
-        std = _per_dimension(start_std, STATE_DIM, "start_std")
-        _require(
-            render_mode is None or render_mode in self.metadata["render_modes"],
-            "render_mode",
-            render_mode,
-            f"None or one of {self.metadata['render_modes']}",
-        )
-
-        self.cart_mass = float(cart_mass)
-        self.pole_mass = float(pole_mass)
-        self.pole_length = float(pole_length)
-        self.friction = float(friction)
-        self.gravity = float(gravity)
-        self.max_force = float(max_force)
-        self.dt = float(dt)
-        self.n_substeps = max(1, math.ceil(dt / integrator_dt - _SUBSTEP_ROUNDING_SLACK))
-        self.integrator_dt = self.dt / self.n_substeps
-        self.horizon = int(horizon)
-        self.obs_noise_std = float(obs_noise_std)
-        self.render_mode = render_mode
-        self.metadata = {**self.metadata, "render_fps": max(1, round(1.0 / self.dt))}
-
+        # Checked in this order, so the first bad argument is the one reported.
+        self.cart_mass = positive("cart_mass", cart_mass)
+        self.pole_mass = positive("pole_mass", pole_mass)
+        self.pole_length = positive("pole_length", pole_length)
+        self.max_force = positive("max_force", max_force)
+        self.dt = positive("dt", dt)
+        positive("integrator_dt", integrator_dt)
+        reward_width = positive("reward_width", reward_width)
+        self.friction = nonnegative("friction", friction)
+        self.gravity = nonnegative("gravity", gravity)
+        self.obs_noise_std = nonnegative("obs_noise_std", obs_noise_std)
+        require(integrator_dt <= dt, "integrator_dt", integrator_dt, f"<= dt = {dt}")
+        self.horizon = positive_integer("horizon", horizon)
         self.start_mean = np.zeros(STATE_DIM)
-        self.start_std = std
-        self.reward_spec = self._make_reward_spec(self.pole_length, float(reward_width))
+        self.start_std = finite_array(
+            "start_std",
+            start_std,
+            STATE_DIM,
+            f"a finite number >= 0 or {STATE_DIM} of them",
+            minimum=0.0,
+            scalar_ok=True,
+        )
+        self.render_mode = check_render_mode(render_mode, self.metadata["render_modes"])
+
+        self.n_substeps = n_substeps(self.dt, integrator_dt)
+        self.integrator_dt = self.dt / self.n_substeps
+        self.metadata = {**self.metadata, "render_fps": max(1, round(1.0 / self.dt))}
+        self.reward_spec = self._make_reward_spec(self.pole_length, reward_width)
 
         self.action_space = spaces.Box(-1.0, 1.0, shape=(ACTION_DIM,), dtype=np.float64)
         self.observation_space = spaces.Box(-np.inf, np.inf, shape=(STATE_DIM,), dtype=np.float64)
@@ -234,17 +203,16 @@ class CartPoleSwingUpEnv(gymnasium.Env):
         """
         ell = pole_length
         c = np.array([[1.0, 0.0, 0.0, ell, 0.0], [0.0, 0.0, 0.0, 0.0, -ell]])
-        weight = c.T @ c
         return SaturatingReward(
             state_dim=STATE_DIM,
             angle_dims=(ANGLE_DIM,),
             target=(0.0, 0.0, 0.0, 0.0, -1.0),
-            weight=tuple(tuple(float(v) for v in row) for row in weight),
+            weight=c.T @ c,
             width=width,
         )
 
     # ---- physics -----------------------------------------------------------------------------
-    def _derivative(self, s: tuple[float, float, float, float], force: float) -> tuple[float, ...]:
+    def _derivative(self, s: Sequence[float], force: float) -> tuple[float, float, float, float]:
         """d/dt [x, ẋ, θ, θ̇] of TASKS.md's uniform-rod equations (plain floats for speed)."""
         _, xd, th, thd = s
         big_m, m, ell, b, g = (
@@ -265,16 +233,9 @@ class CartPoleSwingUpEnv(gymnasium.Env):
 
     def _integrate(self, state: np.ndarray, force: float) -> np.ndarray:
         """RK4 over one control period `dt` with the force held constant."""
-        h = self.integrator_dt
-        s = tuple(float(v) for v in state)
+        s = [float(v) for v in state]
         for _ in range(self.n_substeps):
-            k1 = self._derivative(s, force)
-            k2 = self._derivative(tuple(a + 0.5 * h * k for a, k in zip(s, k1, strict=True)), force)
-            k3 = self._derivative(tuple(a + 0.5 * h * k for a, k in zip(s, k2, strict=True)), force)
-            k4 = self._derivative(tuple(a + h * k for a, k in zip(s, k3, strict=True)), force)
-            s = tuple(
-                a + h / 6.0 * (p + 2.0 * q + 2.0 * r + w) for a, p, q, r, w in zip(s, k1, k2, k3, k4, strict=True)
-            )
+            s = rk4_step(self._derivative, s, self.integrator_dt, force)
         return np.array(s, dtype=float)
 
     def energy(self, state: np.ndarray | None = None) -> float:
@@ -310,13 +271,10 @@ class CartPoleSwingUpEnv(gymnasium.Env):
     ) -> tuple[np.ndarray, dict[str, Any]]:
         """Draw x_0 ~ N(`start_mean`, diag(`start_std`²)), or use `options["state"]`."""
         super().reset(seed=seed)
-        if options is not None and options.get("state") is not None:
-            state = np.asarray(options["state"], dtype=float)
-            if state.shape != (STATE_DIM,) or not np.all(np.isfinite(state)):
-                raise ValueError(f"options['state'] must be {STATE_DIM} finite numbers, got {state}")
-            self.state = state.copy()
-        else:
-            self.state = self.start_mean + self.start_std * self.np_random.standard_normal(STATE_DIM)
+        state = state_option(options, STATE_DIM)
+        if state is None:
+            state = self.start_mean + self.start_std * self.np_random.standard_normal(STATE_DIM)
+        self.state = state
         self._steps = 0
         self.last_force = 0.0
         return self._observe(), {"state": self.state.copy()}
@@ -325,9 +283,7 @@ class CartPoleSwingUpEnv(gymnasium.Env):
         """Apply the force for `dt`; the reward scores the (noise-free) successor state."""
         if self.state is None:
             raise gymnasium.error.ResetNeeded("call reset() before step()")
-        a = np.asarray(action, dtype=float).reshape(-1)
-        if a.shape != (ACTION_DIM,) or not np.all(np.isfinite(a)):
-            raise ValueError(f"action must be {ACTION_DIM} finite number, got {action!r}")
+        a = action_vector(action, ACTION_DIM)
         force = self.max_force * float(np.clip(a[0], -1.0, 1.0))
         self.state = self._integrate(self.state, force)
         self.last_force = force
@@ -339,7 +295,7 @@ class CartPoleSwingUpEnv(gymnasium.Env):
     def render(self) -> np.ndarray | None:
         """An `H x W x 3` `uint8` frame: track, cart, pole, target tip (cross) and force arrow."""
         if self.render_mode is None:
-            gymnasium.logger.warn("render() called without a render_mode; make the env with render_mode='rgb_array'")
+            _render.warn_no_render_mode()
             return None
         state = self.start_mean if self.state is None else self.state
         x, _, th, _ = (float(v) for v in state)

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-from numbers import Integral, Real
 from typing import Any, ClassVar
 
 import gymnasium
@@ -11,6 +10,16 @@ import numpy as np
 from gymnasium import spaces
 
 from envs import _render
+from envs._validation import (
+    action_vector,
+    check_render_mode,
+    finite_array,
+    nonnegative,
+    positive,
+    positive_integer,
+    require,
+    state_option,
+)
 from envs.rewards import SaturatingReward
 
 STATE_DIM = 2
@@ -41,25 +50,6 @@ _RENDER_CURVE_POINTS = 200
 _RENDER_CAR_SIZE = (0.16, 0.07)
 _RENDER_WHEEL_RADIUS = 0.025
 _RENDER_FLAG_HEIGHT = 0.15
-
-
-def _require(ok: bool, name: str, value: object, rule: str) -> None:
-    if not ok:
-        raise ValueError(f"{name} must be {rule}, got {value!r}")
-
-
-def _is_real(value: object) -> bool:
-    return isinstance(value, Real) and not isinstance(value, bool) and math.isfinite(value)
-
-
-def _pair(value: tuple[float, float], name: str, rule: str, nonneg: bool) -> np.ndarray:
-    try:
-        arr = np.asarray(value, dtype=float)
-    except (TypeError, ValueError):
-        arr = np.full(0, np.nan)
-    ok = arr.shape == (STATE_DIM,) and bool(np.all(np.isfinite(arr)))
-    _require(ok and (not nonneg or bool(np.all(arr >= 0))), name, value, rule)
-    return arr.copy()
 
 
 def track_height(position: np.ndarray | float) -> np.ndarray | float:
@@ -131,9 +121,10 @@ class MountainCarEnv(gymnasium.Env):
 
     x_0 ~ N(`start_mean`, diag(`start_std`²)), by default N((−0.5, 0), diag(0.05², 1e−4²)): near
     the valley floor (x = −π/6), at rest; the state is clipped to the track and speed limits.
-    `reset(options={"state": s})` starts from the given state `s` instead.
+    `reset(options={"state": s})` starts from the given state s = (x, v) (2 finite numbers)
+    instead, clipped likewise.
 
-    ## Episode Termination and Truncation
+    ## Episode Truncation
 
     The episode never terminates (reaching the goal is not terminal: the car must stay there); it
     is truncated after `horizon` decisions (default 80, i.e. 400 map steps).
@@ -171,51 +162,28 @@ class MountainCarEnv(gymnasium.Env):
         obs_noise_std: float = DEFAULT_OBS_NOISE_STD,
         render_mode: str | None = None,
     ) -> None:
-        _require(_is_real(power) and power > 0, "power", power, "a finite number > 0")
-        _require(
-            _is_real(reward_width) and reward_width > 0,
-            "reward_width",
-            reward_width,
-            "a finite number > 0",
-        )
-        for name, value in (("velocity_weight", velocity_weight), ("obs_noise_std", obs_noise_std)):
-            _require(_is_real(value) and value >= 0, name, value, "a finite number >= 0")
-        for name, value in (("action_repeat", action_repeat), ("horizon", horizon)):
-            _require(
-                isinstance(value, Integral) and not isinstance(value, bool) and value >= 1,
-                name,
-                value,
-                "an integer >= 1",
-            )
-        mean = _pair(start_mean, "start_mean", "two finite numbers (x, v)", nonneg=False)
-        _require(
+        self.power = positive("power", power)
+        reward_width = positive("reward_width", reward_width)
+        self.velocity_weight = nonnegative("velocity_weight", velocity_weight)
+        self.obs_noise_std = nonnegative("obs_noise_std", obs_noise_std)
+        self.action_repeat = positive_integer("action_repeat", action_repeat)
+        self.horizon = positive_integer("horizon", horizon)
+        mean = finite_array("start_mean", start_mean, STATE_DIM, "two finite numbers (x, v)")
+        require(
             MIN_POSITION <= mean[0] <= MAX_POSITION and abs(mean[1]) <= MAX_SPEED,
             "start_mean",
             start_mean,
             f"on the track [{MIN_POSITION}, {MAX_POSITION}] with |v| <= {MAX_SPEED}",
         )
-        std = _pair(start_std, "start_std", "two finite numbers >= 0", nonneg=True)
-        _require(
-            render_mode is None or render_mode in self.metadata["render_modes"],
-            "render_mode",
-            render_mode,
-            f"None or one of {self.metadata['render_modes']}",
-        )
-
-        self.power = float(power)
-        self.action_repeat = int(action_repeat)
-        self.horizon = int(horizon)
         self.start_mean = mean
-        self.start_std = std
-        self.velocity_weight = float(velocity_weight)
-        self.obs_noise_std = float(obs_noise_std)
-        self.render_mode = render_mode
+        self.start_std = finite_array("start_std", start_std, STATE_DIM, "two finite numbers >= 0", minimum=0.0)
+        self.render_mode = check_render_mode(render_mode, self.metadata["render_modes"])
         self.reward_spec = SaturatingReward(
             state_dim=STATE_DIM,
             angle_dims=(),
             target=(GOAL_POSITION, 0.0),
-            weight=((1.0, 0.0), (0.0, self.velocity_weight)),
-            width=float(reward_width),
+            weight=np.diag([1.0, self.velocity_weight]),
+            width=reward_width,
         )
 
         self.action_space = spaces.Box(-1.0, 1.0, shape=(ACTION_DIM,), dtype=np.float64)
@@ -254,11 +222,8 @@ class MountainCarEnv(gymnasium.Env):
     ) -> tuple[np.ndarray, dict[str, Any]]:
         """Draw x_0 ~ N(`start_mean`, diag(`start_std`²)) (clipped), or use `options["state"]`."""
         super().reset(seed=seed)
-        if options is not None and options.get("state") is not None:
-            state = np.asarray(options["state"], dtype=float)
-            if state.shape != (STATE_DIM,) or not np.all(np.isfinite(state)):
-                raise ValueError(f"options['state'] must be {STATE_DIM} finite numbers, got {state}")
-        else:
+        state = state_option(options, STATE_DIM)
+        if state is None:
             state = self.start_mean + self.start_std * self.np_random.standard_normal(STATE_DIM)
         self.state = self._clip_state(state)
         self._steps = 0
@@ -269,9 +234,7 @@ class MountainCarEnv(gymnasium.Env):
         """Hold the throttle for `action_repeat` map steps; the reward scores the successor."""
         if self.state is None:
             raise gymnasium.error.ResetNeeded("call reset() before step()")
-        a = np.asarray(action, dtype=float).reshape(-1)
-        if a.shape != (ACTION_DIM,) or not np.all(np.isfinite(a)):
-            raise ValueError(f"action must be {ACTION_DIM} finite number, got {action!r}")
+        a = action_vector(action, ACTION_DIM)
         throttle = float(np.clip(a[0], -1.0, 1.0))
         position, velocity = float(self.state[0]), float(self.state[1])
         for _ in range(self.action_repeat):
@@ -286,7 +249,7 @@ class MountainCarEnv(gymnasium.Env):
     def render(self) -> np.ndarray | None:
         """An `H x W x 3` `uint8` frame: hills, goal flag, the car tilted along the slope."""
         if self.render_mode is None:
-            gymnasium.logger.warn("render() called without a render_mode; make the env with render_mode='rgb_array'")
+            _render.warn_no_render_mode()
             return None
         state = self.start_mean if self.state is None else self.state
         x = float(state[0])

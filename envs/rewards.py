@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import operator
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -16,7 +17,8 @@ def augment_angles(x: np.ndarray, angle_dims: Sequence[int]) -> np.ndarray:
     """
     x = np.asarray(x, dtype=float)
     dim = x.shape[-1]
-    keep = [i for i in range(dim) if i not in set(angle_dims)]
+    angles = set(angle_dims)
+    keep = [i for i in range(dim) if i not in angles]
     parts = [x[..., keep]]
     for a in angle_dims:
         parts.append(np.stack([np.sin(x[..., a]), np.cos(x[..., a])], axis=-1))
@@ -29,6 +31,9 @@ class SaturatingReward:
 
     ``target`` (y*) and ``weight`` (W) live in the augmented coordinates of
     :func:`augment_angles` with ``angle_dims``; ``state_dim`` is the raw state dimension D.
+    ``target`` and ``weight`` may be given as numpy arrays or (nested) sequences: they are stored
+    as tuples of floats (and ``angle_dims`` as a tuple of ints), so a spec is immutable, hashable
+    and compares by value.
     """
 
     state_dim: int
@@ -38,11 +43,13 @@ class SaturatingReward:
     width: float
 
     def __post_init__(self) -> None:
-        aug = self.state_dim + len(self.angle_dims)
-        if any(not 0 <= a < self.state_dim for a in self.angle_dims):
-            raise ValueError(f"angle_dims {self.angle_dims} out of range for state_dim {self.state_dim}")
-        if len(self.target) != aug:
-            raise ValueError(f"target has length {len(self.target)}, augmented state has {aug}")
+        angle_dims = tuple(operator.index(a) for a in self.angle_dims)
+        aug = self.state_dim + len(angle_dims)
+        if any(not 0 <= a < self.state_dim for a in angle_dims):
+            raise ValueError(f"angle_dims {angle_dims} out of range for state_dim {self.state_dim}")
+        t = np.asarray(self.target, dtype=float)
+        if t.shape != (aug,):
+            raise ValueError(f"target has shape {t.shape}, augmented state has length {aug}")
         w = np.asarray(self.weight, dtype=float)
         if w.shape != (aug, aug):
             raise ValueError(f"weight has shape {w.shape}, expected ({aug}, {aug})")
@@ -50,6 +57,10 @@ class SaturatingReward:
             raise ValueError("weight must be symmetric positive semi-definite")
         if not self.width > 0:
             raise ValueError(f"width must be positive, got {self.width}")
+        # Frozen dataclass: store the normalised fields behind the generated __setattr__.
+        object.__setattr__(self, "angle_dims", angle_dims)
+        object.__setattr__(self, "target", tuple(t.tolist()))
+        object.__setattr__(self, "weight", tuple(tuple(row) for row in w.tolist()))
 
     @property
     def weight_matrix(self) -> np.ndarray:

@@ -7,11 +7,15 @@ The contract (what the learner relies on), for every env:
 - `info["state"]` is the noise-free state, shaped like the observation, and the reward of a step
   is `reward_spec(info["state"])` for a `SaturatingReward` `reward_spec`;
 - `start_mean` / `start_std` give the start distribution per observation dimension;
-- `render_mode="rgb_array"` returns an `H x W x 3` `uint8` frame.
+- `render_mode="rgb_array"` returns an `H x W x 3` `uint8` frame;
+- the class docstring has Gymnasium's classic-control sections and documents the
+  `reset(options={"state": ...})` option.
 """
 
 from __future__ import annotations
 
+import importlib
+import inspect
 import subprocess
 import sys
 import warnings
@@ -27,6 +31,30 @@ from envs.rewards import SaturatingReward
 
 ALL_IDS = sorted(envs.ENV_IDS)
 N_DETERMINISM_STEPS = 5
+DOC_SECTIONS = (
+    "Description",
+    "Action Space",
+    "Observation Space",
+    "Rewards",
+    "Starting State",
+    "Episode Truncation",
+    "Arguments",
+)
+PUBLIC_NAMES = {
+    "CartPoleSwingUpEnv": "envs.cartpole",
+    "MountainCarEnv": "envs.mountain_car",
+    "QuadcopterEnv": "envs.aircraft",
+    "HelicopterEnv": "envs.aircraft",
+    "Autopilot": "envs.aircraft",
+    "ground_effect_factor": "envs.aircraft",
+    "SaturatingReward": "envs.rewards",
+    "augment_angles": "envs.rewards",
+}
+
+
+def env_class(env_id: str) -> type:
+    module, name = envs.ENV_IDS[env_id].split(":")
+    return getattr(importlib.import_module(module), name)
 
 
 def test_ids_are_registered_with_their_entry_points() -> None:
@@ -45,6 +73,37 @@ def test_envs_package_does_not_import_qtl() -> None:
     code += "".join(f"gymnasium.make({i!r})\n" for i in ALL_IDS)
     code += "assert not any(m == 'qtl' or m.startswith('qtl.') for m in sys.modules)\n"
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_package_reexports_the_public_names() -> None:
+    assert set(envs.__all__) == {*PUBLIC_NAMES, "ENV_IDS"}
+    for name, module in PUBLIC_NAMES.items():
+        assert getattr(envs, name) is getattr(importlib.import_module(module), name)
+        assert name in dir(envs)
+    with pytest.raises(AttributeError):
+        _ = envs.NoSuchName
+    for env_id in ALL_IDS:
+        cls = env_class(env_id)
+        assert getattr(envs, cls.__name__) is cls
+
+
+def test_import_envs_is_lazy_about_the_env_modules() -> None:
+    """`import envs` registers the ids without importing an env module (nor qtl)."""
+    code = "import sys, envs\n"
+    code += "assert not {'envs.cartpole', 'envs.mountain_car', 'envs.aircraft'} & set(sys.modules), sys.modules\n"
+    code += "assert not any(m == 'qtl' or m.startswith('qtl.') for m in sys.modules)\n"
+    code += "from envs import CartPoleSwingUpEnv\n"
+    code += "assert 'envs.cartpole' in sys.modules and 'envs.aircraft' not in sys.modules\n"
+    subprocess.run([sys.executable, "-c", code], check=True)
+
+
+@pytest.mark.parametrize("env_id", ALL_IDS)
+def test_docstring_has_the_classic_control_sections(env_id: str) -> None:
+    doc = inspect.getdoc(env_class(env_id)) or ""
+    headings = [line[3:].strip() for line in doc.splitlines() if line.startswith("## ")]
+    assert [h for h in headings if h in DOC_SECTIONS] == list(DOC_SECTIONS), headings
+    starting_state = doc.split("## Starting State", 1)[1].split("## ", 1)[0]
+    assert 'reset(options={"state": ' in starting_state
 
 
 @pytest.mark.parametrize("env_id", ALL_IDS)
