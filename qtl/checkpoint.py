@@ -1,0 +1,86 @@
+"""Per-episode checkpoints of a run: data, θ, ψ, metrics and RNG states; enough to resume."""
+
+from __future__ import annotations
+
+import os
+import random
+import re
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+CHECKPOINT_DIR = "checkpoints"
+CHECKPOINT_FORMAT = "qtl.run"
+CHECKPOINT_VERSION = 1
+_NAME = re.compile(r"^episode_(\d{4})\.pt$")
+
+
+class CheckpointError(ValueError):
+    """A run directory or checkpoint that cannot be resumed from; the message says why."""
+
+
+def rng_state() -> dict[str, Any]:
+    """The global RNG states of Python, numpy and torch, as tensors and primitives."""
+    kind, keys, pos, has_gauss, cached = np.random.get_state()  # noqa: NPY002
+    return {
+        "python": random.getstate(),
+        "numpy": {"kind": kind, "keys": torch.from_numpy(keys.astype(np.int64)), "pos": int(pos),
+                  "has_gauss": int(has_gauss), "cached": float(cached)},
+        "torch": torch.get_rng_state(),
+    }
+
+
+def set_rng_state(state: dict[str, Any]) -> None:
+    """Restore what :func:`rng_state` returned."""
+    random.setstate(state["python"])
+    n = state["numpy"]
+    np.random.set_state(  # noqa: NPY002
+        (n["kind"], n["keys"].numpy().astype(np.uint32), n["pos"], n["has_gauss"], n["cached"])
+    )
+    torch.set_rng_state(state["torch"])
+
+
+def checkpoint_path(run_dir: str | os.PathLike, episode: int) -> Path:
+    """Where the checkpoint after ``episode`` lives."""
+    return Path(run_dir) / CHECKPOINT_DIR / f"episode_{episode:04d}.pt"
+
+
+def save_checkpoint(run_dir: str | os.PathLike, episode: int, payload: dict[str, Any]) -> Path:
+    """Write the checkpoint after ``episode`` atomically (a crash never leaves half a file)."""
+    path = checkpoint_path(run_dir, episode)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    state = {"format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "episode": episode,
+             "rng": rng_state(), **payload}
+    tmp = path.with_suffix(".pt.tmp")
+    torch.save(state, tmp)
+    os.replace(tmp, path)
+    return path
+
+
+def latest_checkpoint(run_dir: str | os.PathLike) -> Path:
+    """The newest checkpoint of a run directory; a clear error when there is none."""
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise CheckpointError(f"run directory {str(run_dir)!r} does not exist")
+    found = sorted(p for p in (run_dir / CHECKPOINT_DIR).glob("episode_*.pt") if _NAME.match(p.name))
+    if not found:
+        raise CheckpointError(f"{str(run_dir)!r} holds no checkpoints (expected {CHECKPOINT_DIR}/episode_NNNN.pt)")
+    return found[-1]
+
+
+def load_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
+    """Read and check one checkpoint; a corrupt or foreign file gives a clear error."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"no checkpoint at {str(path)!r}")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as err:  # torch raises many types for a damaged file
+        raise CheckpointError(f"corrupt checkpoint {str(path)!r}: {err}") from err
+    if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT:
+        raise CheckpointError(f"{str(path)!r} is not a qtl run checkpoint")
+    if state.get("version") != CHECKPOINT_VERSION:
+        raise CheckpointError(f"{str(path)!r} has unsupported version {state.get('version')!r}")
+    return state

@@ -1,0 +1,125 @@
+"""Gaussian state distributions and the moment-matched image of a map applied to one."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+
+@dataclass(frozen=True)
+class Gaussian:
+    """N(mean, cov) with leading batch dimensions: ``mean`` `... x D`, ``cov`` `... x D x D`.
+
+    The batch shapes of ``mean`` and ``cov`` need only broadcast against each other.
+    """
+
+    mean: Tensor
+    cov: Tensor
+
+    def __post_init__(self) -> None:
+        if self.mean.dim() < 1:
+            raise ValueError("mean must be at least 1-D (`... x D`)")
+        dim = self.mean.shape[-1]
+        if self.cov.dim() < 2 or self.cov.shape[-2:] != (dim, dim):
+            raise ValueError(
+                f"cov must be `... x {dim} x {dim}` to match mean {tuple(self.mean.shape)}, got {tuple(self.cov.shape)}"
+            )
+        torch.broadcast_shapes(self.mean.shape[:-1], self.cov.shape[:-2])  # raises if not
+
+    @property
+    def dim(self) -> int:
+        """D, the dimension of the random vector."""
+        return self.mean.shape[-1]
+
+    @property
+    def batch_shape(self) -> torch.Size:
+        """The broadcast batch shape of mean and covariance."""
+        return torch.broadcast_shapes(self.mean.shape[:-1], self.cov.shape[:-2])
+
+    @property
+    def dtype(self) -> torch.dtype:
+        """The dtype of the mean."""
+        return self.mean.dtype
+
+    def expand(self) -> Gaussian:
+        """The same distribution with mean and covariance broadcast to the full batch shape."""
+        batch = self.batch_shape
+        return Gaussian(self.mean.expand(*batch, self.dim), self.cov.expand(*batch, self.dim, self.dim))
+
+    def __getitem__(self, index: int | slice | tuple) -> Gaussian:
+        """Index the batch dimensions (both tensors are broadcast to the batch shape first)."""
+        full = self.expand()
+        return Gaussian(full.mean[index], full.cov[index])
+
+    def to(self, dtype: torch.dtype | None = None, device: torch.device | str | None = None) -> Gaussian:
+        """The same distribution on another dtype/device."""
+        return Gaussian(self.mean.to(device=device, dtype=dtype), self.cov.to(device=device, dtype=dtype))
+
+    def sample(self, num_samples: int, generator: torch.Generator | None = None) -> Tensor:
+        """Draw samples `num_samples x ... x D`; a singular (PSD) covariance is allowed."""
+        batch = self.batch_shape
+        cov = self.expand().cov
+        # A symmetric square root tolerates singular covariances, unlike a Cholesky factor.
+        eigval, eigvec = torch.linalg.eigh(0.5 * (cov + cov.mT))
+        root = eigvec * eigval.clamp_min(0.0).sqrt()[..., None, :]
+        noise = torch.randn((num_samples, *batch, self.dim), generator=generator, dtype=self.dtype).to(self.mean.device)
+        return self.mean + (root @ noise[..., None]).squeeze(-1)
+
+    @classmethod
+    def stack(cls, states: Sequence[Gaussian], dim: int = 0) -> Gaussian:
+        """Stack distributions of equal batch shape along a new batch dimension."""
+        if dim < 0:
+            raise ValueError("stack along a non-negative batch dimension")
+        batch = torch.broadcast_shapes(*(s.batch_shape for s in states))
+        d = states[0].dim
+        return cls(
+            torch.stack([s.mean.expand(*batch, d) for s in states], dim=dim),
+            torch.stack([s.cov.expand(*batch, d, d) for s in states], dim=dim),
+        )
+
+
+@dataclass(frozen=True)
+class MomentMatch:
+    """Moment-matched image of a map f of a Gaussian input x ~ N(μ, Σ).
+
+    ``mean`` `... x F` is E[f(x)], ``cov`` `... x F x F` is cov[f(x)], ``cross_cov``
+    `... x D x F` is cov[x, f(x)], and ``gain`` `... x D x F` is Σ⁻¹ cov[x, f(x)] — by Stein's
+    lemma the expected Jacobian E[∂f/∂x]ᵀ, PILCO's ``C``. The gain is what chains
+    covariances through a sequence of maps without ever inverting a (possibly singular) Σ.
+    """
+
+    mean: Tensor
+    cov: Tensor
+    cross_cov: Tensor
+    gain: Tensor
+
+    @property
+    def output(self) -> Gaussian:
+        """The moment-matched Gaussian of f(x)."""
+        return Gaussian(self.mean, self.cov)
+
+
+# A map of Gaussian inputs with exact (or moment-matched) output moments.
+GaussianMap = Callable[[Gaussian], MomentMatch]
+
+
+def symmetrize(cov: Tensor) -> Tensor:
+    """(Σ + Σᵀ)/2 for `... x D x D`: removes round-off asymmetry."""
+    return 0.5 * (cov + cov.mT)
+
+
+def compose(inner: MomentMatch, outer: MomentMatch) -> MomentMatch:
+    """Moments of g(f(x)) from those of f(x) and of g at N(E f, cov f), joint-Gaussian chaining.
+
+    cov[x, g] = cov[x, f] Σ_f⁻¹ cov[f, g]: exact when x and f(x) are jointly Gaussian, and the
+    approximation PILCO's ``propagate`` makes otherwise.
+    """
+    return MomentMatch(
+        mean=outer.mean,
+        cov=outer.cov,
+        cross_cov=inner.cross_cov @ outer.gain,
+        gain=inner.gain @ outer.gain,
+    )

@@ -1,0 +1,276 @@
+"""Algorithm 1 of the paper, top to bottom: PILCO's learning loop (θ and ψ from the task itself)."""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import logging
+import math
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import gymnasium
+import numpy as np
+import torch
+from hydra.utils import instantiate
+from omegaconf import DictConfig, OmegaConf
+from tqdm.auto import tqdm
+from tqdm.contrib.logging import logging_redirect_tqdm
+
+from qtl.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint, set_rng_state
+from qtl.data import TransitionDataset
+from qtl.features import AngleFeatures
+from qtl.models import DynamicsGP
+from qtl.policies import Policy, SquashedPolicy
+from qtl.recorder import BASE_COLUMNS, RunRecorder, theta_columns, theta_row, trajectory_figure
+from qtl.rewards import ExpectedSaturatingReward
+from qtl.seeding import seed_everything
+from qtl.task import Task
+
+log = logging.getLogger(__name__)
+
+DTYPES = {"float64": torch.float64, "float32": torch.float32}
+# Independent random streams, each derived from (seed, episode, stream): a resumed run draws
+# exactly what an uninterrupted one would.
+ENV_STREAM, ACTION_STREAM, MODEL_STREAM, SEARCH_STREAM, POLICY_INIT_STREAM = range(5)
+# Draws from the start distribution from which the initial support points are taken.
+START_DRAWS = 1000
+
+
+@dataclass(frozen=True)
+class RunResult:
+    """What a run did, per episode (the random ones included)."""
+
+    output_dir: Path
+    returns: list[float]
+    predicted_returns: list[float]  # NaN for random episodes
+    successes: list[bool]
+
+    @property
+    def first_success(self) -> int | None:
+        """Index of the first successful episode, or None."""
+        return next((i for i, s in enumerate(self.successes) if s), None)
+
+
+@dataclass(frozen=True)
+class Episode:
+    """One episode on the real system: states `T+1 x D`, actions `T x F`, rewards `T`."""
+
+    states: np.ndarray
+    actions: np.ndarray
+    rewards: np.ndarray
+
+
+def derive_seed(seed: int, episode: int, stream: int) -> int:
+    """A 32-bit seed for one random stream of one episode."""
+    return int(np.random.SeedSequence([seed, episode, stream]).generate_state(1)[0])
+
+
+def torch_generator(seed: int, episode: int, stream: int) -> torch.Generator:
+    """A torch Generator seeded for one random stream of one episode."""
+    return torch.Generator().manual_seed(derive_seed(seed, episode, stream))
+
+
+def run_episode(env: gymnasium.Env, task: Task, act: Callable[[np.ndarray], np.ndarray], seed: int) -> Episode:
+    """Apply ``act`` on the real system for at most H steps (Algorithm 1, lines 3 and 11)."""
+    obs, _ = env.reset(seed=seed)
+    states, actions, rewards = [obs], [], []
+    for _ in range(task.horizon):
+        action = np.clip(act(obs), -task.action_bound, task.action_bound)
+        obs, reward, terminated, truncated, _ = env.step(action.astype(env.action_space.dtype))
+        states.append(obs)
+        actions.append(action)
+        rewards.append(reward)
+        if terminated or truncated:
+            break
+    return Episode(np.asarray(states, dtype=float), np.asarray(actions, dtype=float), np.asarray(rewards, dtype=float))
+
+
+def random_actor(task: Task, rng: np.random.Generator) -> Callable[[np.ndarray], np.ndarray]:
+    """Actions uniform in the action bounds, whatever the state (Algorithm 1, line 3)."""
+    return lambda _obs: rng.uniform(-task.action_bound, task.action_bound)
+
+
+def policy_actor(policy: Policy, features: AngleFeatures, dtype: torch.dtype) -> Callable[[np.ndarray], np.ndarray]:
+    """u = π(φ(x)) on a real observation (Algorithm 1, line 11)."""
+
+    def act(obs: np.ndarray) -> np.ndarray:
+        with torch.no_grad():
+            return policy(features(torch.as_tensor(obs, dtype=dtype))).numpy()
+
+    return act
+
+
+def gp_training_pairs(data: TransitionDataset, features: AngleFeatures, dtype: torch.dtype) -> tuple[torch.Tensor, ...]:
+    """Inputs [φ(x_t), u_t] `n x (D + K + F)` and targets Δ_t `n x D` (Section 3.3)."""
+    x, u, delta = data.tensors(dtype)
+    return torch.cat([features(x), u], dim=-1), delta
+
+
+def fit_dynamics(
+    data: TransitionDataset, features: AngleFeatures, cfg: DictConfig, generator: torch.Generator, dtype: torch.dtype
+) -> DynamicsGP:
+    """Infer the transition function: θ_p by evidence maximisation on all tuples (lines 5 and 12)."""
+    inputs, targets = gp_training_pairs(data, features, dtype)
+    model = DynamicsGP(inputs, targets, dtype=dtype)
+    model.fit(restarts=cfg.restarts, max_iter=cfg.max_iter, generator=generator)
+    return model
+
+
+def initial_policy(cfg: DictConfig, task: Task, features: AngleFeatures, dtype: torch.dtype) -> Policy:
+    """π(ψ_0) as PILCO starts it: the configured policy around the start state, squashed (line 1)."""
+    generator = torch_generator(cfg.seed, 0, POLICY_INIT_STREAM)
+    draws = task.start_distribution(dtype).sample(START_DRAWS, generator=generator)  # START_DRAWS x D
+    make = instantiate(cfg.policy)
+    inner = make(task.feature_dim, task.action_dim, start_features=features(draws), generator=generator, dtype=dtype)
+    return SquashedPolicy(inner, torch.as_tensor(task.action_bound, dtype=dtype))
+
+
+def one_step_smse(model: DynamicsGP, episode: Episode, features: AngleFeatures, dtype: torch.dtype) -> float:
+    """Model fit quality: one-step prediction error on an episode it has not seen, over target variance."""
+    data = TransitionDataset(episode.states.shape[1], episode.actions.shape[1])
+    data.add_episode(episode.states, episode.actions)
+    inputs, targets = gp_training_pairs(data, features, dtype)
+    mean, _ = model.predict(inputs)
+    mse = ((mean - targets) ** 2).mean(0)
+    return float((mse / model.train_y.var(0)).mean())
+
+
+@contextlib.contextmanager
+def progress_bar(total: int, initial: int, enabled: bool) -> Iterator[tqdm]:
+    """A progress bar over episodes, log lines routed around it; silent when disabled."""
+    with logging_redirect_tqdm(), tqdm(total=total, initial=initial, disable=not enabled, unit="episode") as bar:
+        yield bar
+
+
+def run(cfg: DictConfig, output_dir: Path, *, resume: bool = False) -> RunResult:
+    """Algorithm 1 without transfer (PILCO): learn the task of ``cfg`` in ``output_dir``."""
+    # -- Check everything before any work: task, env, spaces, resume point. -----------------------
+    dtype = DTYPES[cfg.dtype]
+    task = Task.from_config(OmegaConf.to_container(cfg.task, resolve=True))
+    checkpoint = load_checkpoint(latest_checkpoint(output_dir)) if resume else None
+    seed_everything(cfg.seed)
+    if cfg.threads:
+        torch.set_num_threads(cfg.threads)
+    features = AngleFeatures(task.state_dim, task.angle_dims)
+    reward = ExpectedSaturatingReward.from_spec(task.reward)
+    start = task.start_distribution(dtype)
+    make_propagator = instantiate(cfg.propagation)
+    search = instantiate(cfg.optimizer)
+    total = cfg.random_episodes + cfg.episodes
+
+    # -- Algorithm 1, line 1: the initial policy; an empty set of tuples. -----------------------
+    policy = initial_policy(cfg, task, features, dtype)
+    data = TransitionDataset(task.state_dim, task.action_dim)
+    rows: list[dict[str, Any]] = []
+    timings: list[dict[str, Any]] = []
+    first = 0
+    if checkpoint is not None:
+        data = TransitionDataset.from_state(checkpoint["dataset"])
+        policy.load_state_dict(checkpoint["policy"])
+        rows, timings = list(checkpoint["metrics"]), list(checkpoint["timings"])
+        first = checkpoint["episode"] + 1
+        set_rng_state(checkpoint["rng"])
+        log.info("resuming %s after episode %d", output_dir, checkpoint["episode"])
+    columns = BASE_COLUMNS + theta_columns(task.state_dim, task.gp_input_dim)
+    recorder = RunRecorder(output_dir, columns, rows, timings)
+    env = task.make_env()
+    show_progress = bool(cfg.progress)
+
+    try:
+        with progress_bar(total, first, show_progress) as bar:
+            for episode in range(first, total):
+                row: dict[str, Any] = {"episode": episode}
+                figure = None
+                if episode < cfg.random_episodes:
+                    # -- Line 3: interact with the environment using random actions. ------------
+                    rng = np.random.default_rng(derive_seed(cfg.seed, episode, ACTION_STREAM))
+                    real = run_episode(env, task, random_actor(task, rng), derive_seed(cfg.seed, episode, ENV_STREAM))
+                    row.update(kind="random", predicted_return=math.nan)
+                    fit_s = search_s = 0.0
+                else:
+                    # -- Lines 5 and 12: infer the transition function f from all tuples and θ. --
+                    tic = time.perf_counter()
+                    model = fit_dynamics(data, features, cfg.model, torch_generator(cfg.seed, episode, MODEL_STREAM),
+                                         dtype)
+                    fit_s = time.perf_counter() - tic
+
+                    # -- Lines 6-9: evaluate π over f (V^π, Eq. 4) and improve ψ until convergence.
+                    tic = time.perf_counter()
+                    propagator = make_propagator(model, policy, reward, angle_dims=task.angle_dims)
+                    with tqdm(desc=f"policy search {episode}", unit="eval", leave=False,
+                              disable=not show_progress) as evals:
+                        found = search(policy, functools.partial(propagator.expected_return, start, task.horizon),
+                                       generator=torch_generator(cfg.seed, episode, SEARCH_STREAM),
+                                       tick=functools.partial(evals.update, 1))
+                    search_s = time.perf_counter() - tic
+
+                    # -- Lines 10-11: apply π(ψ) on the real system to obtain more tuples. ---------
+                    actor = policy_actor(policy, features, dtype)
+                    real = run_episode(env, task, actor, derive_seed(cfg.seed, episode, ENV_STREAM))
+                    row.update(
+                        kind="policy",
+                        predicted_return=found.value,
+                        model_smse=one_step_smse(model, real, features, dtype),
+                        model_log_evidence=_log_evidence(model),
+                        policy_evaluations=found.evaluations,
+                        **theta_row(model.hyperparameters),
+                    )
+                    learned = episode - cfg.random_episodes
+                    if cfg.figure_every > 0 and learned % cfg.figure_every == 0:
+                        figure = _prediction_figure(propagator, start, task, real, episode)
+
+                # -- Append the tuples; record the episode; checkpoint it. ------------------------
+                data.add_episode(real.states, real.actions)
+                row.update(
+                    {"return": float(real.rewards.sum())},
+                    success=int(task.succeeded(real.states)),
+                    length=len(real.rewards),
+                    final_distance=float(task.distance(real.states[-1:])[0]),
+                )
+                recorder.record(row, {"model_fit_s": fit_s, "policy_search_s": search_s}, figure)
+                save_checkpoint(output_dir, episode, {
+                    "config": OmegaConf.to_yaml(cfg),
+                    "dataset": data.state(),
+                    "policy": {k: v.detach().clone() for k, v in policy.state_dict().items()},
+                    "metrics": recorder.rows,
+                    "timings": recorder.timings,
+                })
+                log.info(
+                    "episode %d (%s): return %.2f, predicted %.2f, success %s, fit %.1f s, policy search %.1f s",
+                    episode, row["kind"], row["return"], row["predicted_return"], bool(row["success"]), fit_s,
+                    search_s,
+                )
+                bar.update(1)
+    finally:
+        env.close()
+        recorder.close()
+
+    return RunResult(
+        output_dir=output_dir,
+        returns=[float(r["return"]) for r in recorder.rows],
+        predicted_returns=[float(r["predicted_return"]) for r in recorder.rows],
+        successes=[bool(int(r["success"])) for r in recorder.rows],
+    )
+
+
+def _log_evidence(model: DynamicsGP) -> float:
+    """Mean over outputs of the log evidence per data point (with priors) of the fitted model."""
+    model.train()
+    with torch.no_grad():
+        value = float(model.log_evidence().mean())
+    model.eval()
+    return value
+
+
+def _prediction_figure(propagator: Any, start: Any, task: Task, real: Episode, episode: int) -> Any:
+    """Predicted state distribution of the final policy against what the real system did."""
+    with torch.no_grad():
+        predicted = propagator.rollout(start, task.horizon).states  # (H+1) x D
+    mean = predicted.mean.numpy()
+    std = torch.diagonal(predicted.cov, dim1=-2, dim2=-1).clamp_min(0).sqrt().numpy()
+    return trajectory_figure(mean, std, real.states, f"episode {episode}: predicted vs real")
+

@@ -1,0 +1,193 @@
+"""Long-term prediction by analytic moment matching through policy and GP (PILCO, Eq. 4).
+
+One step from x_t ~ N(μ, Σ), as PILCO's ``propagate``: features y = φ(x) (exact, gTrig), the
+action u = π(y) at the Gaussian N(E y, cov y) (exact moments, gp2 + gSat), the GP at the
+Gaussian input [y, u] (exact moments, gp0), then x_{t+1} = x_t + Δ. The cross-covariances
+cov[x, y], cov[x, u], cov[x, Δ] are chained through the gains Σ⁻¹ cov[·, ·] under the
+approximation that each joint is Gaussian; the state distribution is thereby moment-matched to
+a Gaussian at every step.
+
+Output noise: the predicted Δ is the latent transition (PILCO gp0, "predictive variances
+contain uncertainty about the function, but no noise"): σ_ε² is treated as measurement noise
+of the training targets and is not propagated. ``include_noise=True`` adds diag(σ_ε²) to the
+covariance of Δ at every step instead.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import torch
+from torch import Tensor
+
+from qtl.features import AngleFeatures
+from qtl.gaussian import Gaussian, GaussianMap, MomentMatch, symmetrize
+from qtl.models.dynamics_gp import GPPosteriorCache
+from qtl.propagation.kernel_moments import SEKernelMoments
+from qtl.rewards import ExpectedSaturatingReward
+
+if TYPE_CHECKING:
+    from qtl.policies.base import Policy
+
+
+@dataclass(frozen=True)
+class Rollout:
+    """A predicted trajectory: V = Σ_{t=1..H} E[r(x_t)] and the per-step distributions.
+
+    ``value`` `...` (Eq. 4, successor states x_1..x_H scored), ``rewards`` `... x H`,
+    ``states`` mean `... x (H+1) x D` and cov `... x (H+1) x D x D` (x_0..x_H), ``actions``
+    mean `... x H x F` and cov `... x H x F x F` (u_0..u_{H−1}).
+    """
+
+    value: Tensor
+    rewards: Tensor
+    states: Gaussian
+    actions: Gaussian
+
+
+def _stack_caches(caches: Sequence[GPPosteriorCache]) -> dict[str, Tensor]:
+    """The tensors of several posterior caches of equal sizes, stacked on a leading dimension."""
+    shapes = {(c.inputs.shape, c.K_inv.shape) for c in caches}
+    if len(shapes) != 1:
+        raise ValueError(f"stacked GP caches must share n, D and E; got shapes {sorted(shapes)}")
+    return {
+        "inputs": torch.stack([c.inputs for c in caches]),
+        "K_inv": torch.stack([c.K_inv for c in caches]),
+        "beta": torch.stack([c.beta for c in caches]),
+        "lengthscales": torch.stack([c.hyperparameters.lengthscales for c in caches]),
+        "signal_variance": torch.stack([c.hyperparameters.signal_variance for c in caches]),
+        "noise_variance": torch.stack([c.hyperparameters.noise_variance for c in caches]),
+    }
+
+
+class MomentMatching:
+    """Propagates Gaussian state distributions through a policy and a GP dynamics model.
+
+    ``model``: a :class:`~qtl.models.GPPosteriorCache` (or anything with ``posterior_cache()``),
+    or a sequence of caches of equal sizes, stacked as a leading batch dimension `M` that
+    broadcasts against the batch of the start distribution. GP inputs are
+    [φ(x), u] (`D + K + F`), GP outputs Δ = x_{t+1} − x_t in raw coordinates (`E = D`).
+    ``policy``: acts on the features φ(x) (``prepare()`` gives its moment map).
+    ``reward``: scores the successor states. ``angle_dims``: the dynamics' angle dimensions.
+    ``dtype``: of the propagation (default: the cache's); the policy must share it, start
+    distributions are converted.
+    """
+
+    def __init__(
+        self,
+        model: GPPosteriorCache | Sequence[GPPosteriorCache] | Any,
+        policy: Policy,
+        reward: ExpectedSaturatingReward,
+        *,
+        angle_dims: Sequence[int] = (),
+        include_noise: bool = False,
+        dtype: torch.dtype | None = None,
+    ) -> None:
+        if hasattr(model, "posterior_cache"):
+            model = model.posterior_cache()
+        if isinstance(model, GPPosteriorCache):
+            theta = model.hyperparameters
+            data = {
+                "inputs": model.inputs,
+                "K_inv": model.K_inv,
+                "beta": model.beta,
+                "lengthscales": theta.lengthscales,
+                "signal_variance": theta.signal_variance,
+                "noise_variance": theta.noise_variance,
+            }
+        else:
+            data = _stack_caches(list(model))
+        self.dtype = dtype or data["inputs"].dtype
+        data = {k: v.detach().to(self.dtype) for k, v in data.items()}
+
+        state_dim = data["beta"].shape[-2]
+        self.state_dim = state_dim
+        self.features = AngleFeatures(state_dim, angle_dims)
+        gp_input_dim = data["inputs"].shape[-1]
+        if gp_input_dim != self.features.output_dim + policy.output_dim:
+            raise ValueError(
+                f"GP input dimension {gp_input_dim} != features ({self.features.output_dim}) + "
+                f"actions ({policy.output_dim})"
+            )
+        if policy.input_dim != self.features.output_dim:
+            raise ValueError(f"policy takes {policy.input_dim} inputs, the features have {self.features.output_dim}")
+        if reward.state_dim != state_dim:
+            raise ValueError(f"reward is for {reward.state_dim}-D states, the GP predicts {state_dim}-D")
+        self.policy = policy
+        self.reward = reward
+        self.include_noise = include_noise
+        self.noise_variance = data["noise_variance"]  # ... x E
+        # Everything that depends only on data and θ is computed here, once.
+        self.dynamics = SEKernelMoments(
+            data["inputs"], data["beta"], data["lengthscales"], data["signal_variance"], data["K_inv"]
+        )
+
+    def _step(self, state: Gaussian, policy_map: GaussianMap) -> tuple[Gaussian, MomentMatch]:
+        """x_t ~ N(μ, Σ) ↦ (x_{t+1}, moments of u_t), as PILCO's ``propagate``."""
+        state = state.expand()
+        mean, cov = state.mean, state.cov
+        feats = self.features.moments(state)  # y = φ(x); cross_cov = cov[x, y]
+        act = policy_map(feats.output)  # u = π(y); cross_cov = cov[y, u]
+        # The GP input [y, u] as one Gaussian.
+        gp_in = Gaussian(
+            torch.cat([feats.mean, act.mean], dim=-1),
+            torch.cat(
+                [
+                    torch.cat([feats.cov, act.cross_cov], dim=-1),
+                    torch.cat([act.cross_cov.mT, act.cov], dim=-1),
+                ],
+                dim=-2,
+            ),
+        )
+        delta = self.dynamics(gp_in)  # Δ; gain = cov[y u]⁻¹ cov[[y u], Δ]
+        # cov[x, [y u]] = [cov[x, y], cov[x, y] Σ_y⁻¹ cov[y, u]], then cov[x, Δ] likewise.
+        cov_x_in = torch.cat([feats.cross_cov, feats.cross_cov @ act.gain], dim=-1)
+        cov_x_delta = cov_x_in @ delta.gain
+        next_cov = cov + delta.cov + cov_x_delta + cov_x_delta.mT
+        if self.include_noise:
+            next_cov = next_cov + torch.diag_embed(self.noise_variance)
+        return Gaussian(mean + delta.mean, symmetrize(next_cov)), act
+
+    def step(self, state: Gaussian) -> tuple[Gaussian, Gaussian]:
+        """One step: the distribution of x_{t+1} and that of the action u_t."""
+        next_state, action = self._step(state.to(dtype=self.dtype), self.policy.prepare())
+        return next_state, action.output
+
+    def rollout(self, start: Gaussian, horizon: int) -> Rollout:
+        """H steps from N(μ_0, Σ_0); V = Σ_{t=1..H} E[r(x_t)] (Eq. 4), differentiable in ψ."""
+        if start.dim != self.state_dim:
+            raise ValueError(f"start must be a {self.state_dim}-D distribution, got {start.dim}-D")
+        if horizon < 1:
+            raise ValueError(f"horizon must be >= 1, got {horizon}")
+        start = start.to(dtype=self.dtype)
+        policy_map = self.policy.prepare()  # ψ-only quantities (β_π, ...) once per rollout
+        states, actions, rewards = [start], [], []
+        state = start
+        for _ in range(horizon):
+            state, action = self._step(state, policy_map)
+            states.append(state)
+            actions.append(action)
+            rewards.append(self.reward.expected(state))
+        rewards_t = torch.stack(torch.broadcast_tensors(*rewards), dim=-1)
+        return Rollout(
+            value=rewards_t.sum(-1),
+            rewards=rewards_t,
+            states=_stack_states(states),
+            actions=_stack_states([a.output for a in actions]),
+        )
+
+    def expected_return(self, start: Gaussian, horizon: int) -> Tensor:
+        """V^π(x_0) = Σ_{t=1..H} E[r(x_t)] (Eq. 4): `...`, differentiable in ψ."""
+        return self.rollout(start, horizon).value
+
+
+def _stack_states(states: Sequence[Gaussian]) -> Gaussian:
+    """Stack per-step distributions along a new time dimension before the event dimension."""
+    batch = torch.broadcast_shapes(*(s.batch_shape for s in states))
+    dim = states[0].dim
+    return Gaussian(
+        torch.stack([s.mean.expand(*batch, dim) for s in states], dim=-2),
+        torch.stack([s.cov.expand(*batch, dim, dim) for s in states], dim=-3),
+    )

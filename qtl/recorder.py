@@ -1,0 +1,135 @@
+"""What a run writes as it learns: TensorBoard scalars and figures, and ``metrics.csv``."""
+
+from __future__ import annotations
+
+import csv
+import math
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import numpy as np
+from torch.utils.tensorboard import SummaryWriter
+
+from qtl.models import GPHyperparameters
+
+METRICS_FILE = "metrics.csv"
+# Wall times differ between identical runs, so they live apart from metrics.csv (which same seed
+# reproduces exactly).
+TIMINGS_FILE = "timings.csv"
+TIMING_COLUMNS = ["episode", "model_fit_s", "policy_search_s"]
+BASE_COLUMNS = [
+    "episode",
+    "kind",
+    "return",
+    "predicted_return",
+    "success",
+    "length",
+    "final_distance",
+    "model_smse",
+    "model_log_evidence",
+    "policy_evaluations",
+]
+
+
+def theta_columns(num_outputs: int, input_dim: int) -> list[str]:
+    """``theta/out{j}/lengthscale/in{i}``, ``…/signal_variance``, ``…/noise_variance`` column names."""
+    names = [f"lengthscale/in{i}" for i in range(input_dim)] + ["signal_variance", "noise_variance"]
+    return [f"theta/out{j}/{n}" for j in range(num_outputs) for n in names]
+
+
+def theta_row(theta: GPHyperparameters | None) -> dict[str, float]:
+    """θ as ``{column: value}`` (empty when there is no model yet)."""
+    return {} if theta is None else {f"theta/{k}": v for k, v in theta.as_dict().items()}
+
+
+class RunRecorder:
+    """Writes one row per episode to ``metrics.csv`` (and ``timings.csv``) and to TensorBoard.
+
+    ``rows`` and ``timings`` are earlier episodes' rows (when resuming): the CSV files are
+    rewritten with exactly them, and TensorBoard events from step ``len(rows)`` on, left by an
+    interrupted writer, are purged.
+    """
+
+    def __init__(
+        self,
+        output_dir: Path,
+        columns: Sequence[str],
+        rows: Sequence[dict[str, Any]] = (),
+        timings: Sequence[dict[str, Any]] = (),
+    ) -> None:
+        self.output_dir = Path(output_dir)
+        self.columns = list(columns)
+        self.rows: list[dict[str, Any]] = [dict(r) for r in rows]
+        self.timings: list[dict[str, Any]] = [dict(t) for t in timings]
+        self.writer = SummaryWriter(log_dir=str(self.output_dir), purge_step=len(self.rows) if self.rows else None)
+        _write_csv(self.output_dir / METRICS_FILE, self.columns, self.rows)
+        _write_csv(self.output_dir / TIMINGS_FILE, TIMING_COLUMNS, self.timings)
+
+    def record(self, row: dict[str, Any], timings: dict[str, float], figure: plt.Figure | None = None) -> None:
+        """Append an episode's row and timings; write scalars (and figure) to TensorBoard; flush."""
+        step = int(row["episode"])
+        timings = {"episode": step, **timings}
+        _append_csv(self.output_dir / METRICS_FILE, self.columns, row)
+        _append_csv(self.output_dir / TIMINGS_FILE, TIMING_COLUMNS, timings)
+        self.rows.append(dict(row))
+        self.timings.append(timings)
+        tags = {
+            "eval/return": row.get("return"),
+            "eval/success": row.get("success"),
+            "eval/length": row.get("length"),
+            "eval/final_distance": row.get("final_distance"),
+            "policy/predicted_return": row.get("predicted_return"),
+            "policy/evaluations": row.get("policy_evaluations"),
+            "model/smse": row.get("model_smse"),
+            "model/log_evidence": row.get("model_log_evidence"),
+            "time/model_fit_s": timings["model_fit_s"],
+            "time/policy_search_s": timings["policy_search_s"],
+        }
+        tags.update({f"model/{k[len('theta/'):]}": v for k, v in row.items() if k.startswith("theta/")})
+        for tag, value in tags.items():
+            if value is not None and value != "" and math.isfinite(float(value)):
+                self.writer.add_scalar(tag, float(value), step)
+        if figure is not None:
+            self.writer.add_figure("rollout/predicted_vs_real", figure, step, close=True)
+        self.writer.flush()
+
+    def close(self) -> None:
+        """Flush and close the TensorBoard writer."""
+        self.writer.close()
+
+
+def _write_csv(path: Path, columns: Sequence[str], rows: Sequence[dict[str, Any]]) -> None:
+    with open(path, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=columns, extrasaction="ignore")
+        writer.writeheader()
+        writer.writerows(rows)
+
+
+def _append_csv(path: Path, columns: Sequence[str], row: dict[str, Any]) -> None:
+    with open(path, "a", newline="") as f:
+        csv.DictWriter(f, fieldnames=columns, extrasaction="ignore").writerow(row)
+
+
+def trajectory_figure(
+    predicted_mean: np.ndarray, predicted_std: np.ndarray, real: np.ndarray, title: str
+) -> plt.Figure:
+    """Predicted mean ± 2 std `T+1 x D` against the real states `T'+1 x D`, one panel per dimension."""
+    dims = real.shape[1]
+    fig, axes = plt.subplots(dims, 1, figsize=(6, 1.8 * dims), sharex=True, squeeze=False)
+    steps = np.arange(predicted_mean.shape[0])
+    for d, ax in enumerate(axes[:, 0]):
+        ax.fill_between(steps, predicted_mean[:, d] - 2 * predicted_std[:, d],
+                        predicted_mean[:, d] + 2 * predicted_std[:, d], alpha=0.3, label="predicted ± 2σ")
+        ax.plot(steps, predicted_mean[:, d], label="predicted mean")
+        ax.plot(np.arange(real.shape[0]), real[:, d], "k.-", markersize=3, label="real")
+        ax.set_ylabel(f"x[{d}]")
+    axes[0, 0].set_title(title)
+    axes[0, 0].legend(loc="best", fontsize="small")
+    axes[-1, 0].set_xlabel("step")
+    fig.tight_layout()
+    return fig

@@ -1,0 +1,92 @@
+"""The saturating reward of Eq. 13 in torch: per state, and its expectation under a Gaussian state.
+
+r(x) = exp(−½ (y − y*)ᵀ W (y − y*)), y the angle-augmented state (``qtl.features``), built
+from the same declarative spec the environments use (``envs.rewards.SaturatingReward``:
+``state_dim``, ``angle_dims``, ``target`` y*, ``weight_matrix`` W with the width folded in).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from qtl.features import AngleFeatures
+from qtl.gaussian import Gaussian
+
+# Eigenvalues of W below this fraction of the largest are treated as zero (W is PSD).
+WEIGHT_RANK_TOL = 1e-12
+
+
+class ExpectedSaturatingReward:
+    """r(x) = exp(−½ (y − y*)ᵀ W (y − y*)) (Eq. 13) with y = [x_other, sin θ_a, cos θ_a, …].
+
+    ``target`` `D + K` and ``weight_matrix`` `(D + K) x (D + K)` (symmetric PSD) live in the
+    augmented coordinates of :class:`qtl.features.AngleFeatures` with ``angle_dims``.
+    """
+
+    def __init__(
+        self,
+        state_dim: int,
+        angle_dims: Sequence[int],
+        target: Sequence[float] | Tensor,
+        weight_matrix: Sequence[Sequence[float]] | Tensor | Any,
+    ) -> None:
+        self.features = AngleFeatures(state_dim, angle_dims)
+        aug = self.features.output_dim
+        target = torch.as_tensor(target, dtype=torch.float64)
+        weight = torch.as_tensor(weight_matrix, dtype=torch.float64)
+        if target.shape != (aug,) or weight.shape != (aug, aug):
+            raise ValueError(
+                f"target must be `{aug}` and weight_matrix `{aug} x {aug}`, got "
+                f"{tuple(target.shape)} and {tuple(weight.shape)}"
+            )
+        if not torch.allclose(weight, weight.mT):
+            raise ValueError("weight_matrix must be symmetric")
+        eigval, eigvec = torch.linalg.eigh(weight)
+        if eigval.min() < -WEIGHT_RANK_TOL * max(eigval.abs().max().item(), 1.0):
+            raise ValueError("weight_matrix must be positive semi-definite")
+        keep = eigval > WEIGHT_RANK_TOL * eigval.max()
+        self.target = target
+        self.weight = weight
+        # W = Cᵀ C with C `r x (D + K)`, r = rank W: the expectation works in the r-D range of W.
+        self.factor = eigval[keep].sqrt()[:, None] * eigvec[:, keep].mT
+
+    @classmethod
+    def from_spec(cls, spec: Any) -> ExpectedSaturatingReward:
+        """Build from any object with ``state_dim``, ``angle_dims``, ``target``, ``weight_matrix``."""
+        return cls(spec.state_dim, spec.angle_dims, spec.target, spec.weight_matrix)
+
+    @property
+    def state_dim(self) -> int:
+        """D, the raw state dimension."""
+        return self.features.state_dim
+
+    def __call__(self, x: Tensor) -> Tensor:
+        """Reward of raw states `... x D` (e.g. particles): `...` (Eq. 13)."""
+        diff = (self.features(x) - self.target.to(x)) @ self.factor.to(x).mT
+        return torch.exp(-0.5 * diff.square().sum(-1))
+
+    def expected_augmented(self, y: Gaussian) -> Tensor:
+        """E[r] for Gaussian augmented features y ~ N(m, S): `...` (Eq. 13 in expectation).
+
+        E[exp(−½ dᵀWd)] = |I + C S Cᵀ|^{-1/2} exp(−½ eᵀ (I + C S Cᵀ)⁻¹ e), e = C (m − y*).
+        """
+        factor = self.factor.to(y.mean)
+        proj_cov = factor @ y.cov @ factor.mT
+        eye = torch.eye(factor.shape[0], dtype=proj_cov.dtype, device=proj_cov.device)
+        chol = torch.linalg.cholesky(proj_cov + eye)
+        err = (y.mean - self.target.to(y.mean)) @ factor.mT
+        white = torch.linalg.solve_triangular(chol, err[..., None], upper=False).squeeze(-1)
+        half_logdet = torch.diagonal(chol, dim1=-2, dim2=-1).log().sum(-1)
+        return torch.exp(-half_logdet - 0.5 * white.square().sum(-1))
+
+    def expected(self, state: Gaussian) -> Tensor:
+        """E[r(x)] for a raw Gaussian state `... x D` → `...` (Eq. 13).
+
+        Exact when there are no angle dimensions; otherwise, as PILCO, the exact expectation
+        under the moment-matched Gaussian of the augmented state y.
+        """
+        return self.expected_augmented(self.features.moments(state).output)

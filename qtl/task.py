@@ -1,0 +1,161 @@
+"""A configured task: its gymnasium env, dimensions, reward, start distribution and success test."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import gymnasium
+import numpy as np
+import torch
+
+import envs  # noqa: F401  (registers the qtl/ environment ids)
+from envs.rewards import SaturatingReward, augment_angles
+from qtl.gaussian import Gaussian
+
+
+class TaskError(ValueError):
+    """A task configuration that cannot work; the message says what to fix."""
+
+
+@dataclass(frozen=True)
+class Task:
+    """Everything the learner needs to know about a task, checked before any work starts."""
+
+    name: str
+    env_id: str
+    env_kwargs: dict[str, Any]
+    horizon: int
+    angle_dims: tuple[int, ...]
+    state_dim: int
+    action_dim: int
+    action_bound: np.ndarray  # `F`: the action space is [−bound, bound]
+    start_mean: np.ndarray  # `D`
+    start_std: np.ndarray  # `D`
+    reward: SaturatingReward
+    success_threshold: float
+    success_steps: int
+
+    @classmethod
+    def from_config(cls, cfg: Mapping[str, Any]) -> Task:
+        """Build and check a task from its config node (``task``); makes one env to read its spaces."""
+        env_cfg = dict(cfg["env"])
+        env_id = env_cfg.pop("id", None)
+        if not env_id:
+            raise TaskError("task.env.id is missing: name a registered gymnasium env id")
+        horizon = int(cfg["horizon"])
+        if horizon <= 0:
+            raise TaskError(f"task.horizon must be a positive number of steps, got {horizon}")
+        try:
+            env = gymnasium.make(env_id, **env_cfg)
+        except gymnasium.error.Error as err:
+            raise TaskError(f"cannot make task.env.id={env_id!r}: {err}") from err
+        except (TypeError, ValueError) as err:
+            raise TaskError(f"bad constructor kwargs for {env_id!r} under task.env: {err}") from err
+        try:
+            obs_space, act_space = env.observation_space, env.action_space
+            for what, space in (("observation", obs_space), ("action", act_space)):
+                if not isinstance(space, gymnasium.spaces.Box) or len(space.shape) != 1:
+                    raise TaskError(f"{env_id} must have a 1-D Box {what} space, it has {space}")
+            state_dim, action_dim = obs_space.shape[0], act_space.shape[0]
+            low, high = act_space.low.astype(float), act_space.high.astype(float)
+            if not (np.isfinite(high).all() and np.allclose(low, -high) and (high > 0).all()):
+                raise TaskError(f"{env_id} must have finite symmetric action bounds [-b, b], it has [{low}, {high}]")
+            angle_dims = tuple(int(a) for a in cfg.get("angle_dims", ()))
+            if any(not 0 <= a < state_dim for a in angle_dims) or len(set(angle_dims)) != len(angle_dims):
+                raise TaskError(f"task.angle_dims {list(angle_dims)} must be distinct indices below {state_dim}")
+            start_mean, start_std = _start_distribution(cfg.get("start"), env.unwrapped, env_id, state_dim)
+            reward = _reward(cfg.get("reward"), env.unwrapped, env_id, state_dim)
+        finally:
+            env.close()
+        success = cfg["success"]
+        if float(success["threshold"]) <= 0 or not 1 <= int(success["last_steps"]) <= horizon:
+            raise TaskError(
+                f"task.success needs threshold > 0 and 1 <= last_steps <= horizon ({horizon}), got {dict(success)}"
+            )
+        return cls(
+            name=str(cfg["name"]),
+            env_id=env_id,
+            env_kwargs=env_cfg,
+            horizon=horizon,
+            angle_dims=angle_dims,
+            state_dim=state_dim,
+            action_dim=action_dim,
+            action_bound=high,
+            start_mean=start_mean,
+            start_std=start_std,
+            reward=reward,
+            success_threshold=float(success["threshold"]),
+            success_steps=int(success["last_steps"]),
+        )
+
+    @property
+    def feature_dim(self) -> int:
+        """Dimension of the state features (angles as sin, cos) that policy and GP see."""
+        return self.state_dim + len(self.angle_dims)
+
+    @property
+    def gp_input_dim(self) -> int:
+        """Dimension of the GP input [features, action]."""
+        return self.feature_dim + self.action_dim
+
+    def make_env(self) -> gymnasium.Env:
+        """A fresh env of this task."""
+        return gymnasium.make(self.env_id, **self.env_kwargs)
+
+    def start_distribution(self, dtype: torch.dtype = torch.float64) -> Gaussian:
+        """x_0 ~ N(μ_0, diag(σ_0²)) (Eq. 4)."""
+        return Gaussian(
+            torch.as_tensor(self.start_mean, dtype=dtype),
+            torch.diag(torch.as_tensor(self.start_std, dtype=dtype) ** 2),
+        )
+
+    def distance(self, states: np.ndarray) -> np.ndarray:
+        """Distance to the target in the reward's metric, sqrt((y − y*)ᵀ W (y − y*)): `T`."""
+        y = augment_angles(states, self.reward.angle_dims) - np.asarray(self.reward.target)
+        return np.sqrt(np.einsum("...i,ij,...j->...", y, np.asarray(self.reward.weight), y).clip(min=0.0))
+
+    def succeeded(self, states: np.ndarray) -> bool:
+        """Whether the last ``success_steps`` states of an episode `T+1 x D` are within the threshold."""
+        return bool((self.distance(states[-self.success_steps :]) <= self.success_threshold).all())
+
+
+def _start_distribution(
+    cfg: Mapping[str, Any] | None, env: gymnasium.Env, env_id: str, state_dim: int
+) -> tuple[np.ndarray, np.ndarray]:
+    mean = None if cfg is None else cfg.get("mean")
+    std = None if cfg is None else cfg.get("std")
+    mean = getattr(env, "start_mean", None) if mean is None else mean
+    std = getattr(env, "start_std", None) if std is None else std
+    if mean is None or std is None:
+        raise TaskError(f"{env_id} has no start_mean/start_std: set task.start.mean and task.start.std")
+    mean = np.broadcast_to(np.asarray(mean, dtype=float), (state_dim,)).copy()
+    std = np.broadcast_to(np.asarray(std, dtype=float), (state_dim,)).copy()
+    if not (np.isfinite(mean).all() and np.isfinite(std).all() and (std >= 0).all()):
+        raise TaskError(f"start distribution must be finite with std >= 0, got mean {mean}, std {std}")
+    return mean, std
+
+
+def _reward(cfg: Mapping[str, Any] | None, env: gymnasium.Env, env_id: str, state_dim: int) -> SaturatingReward:
+    if cfg is not None:
+        try:
+            return SaturatingReward(
+                state_dim=state_dim,
+                angle_dims=tuple(cfg["angle_dims"]),
+                target=_floats(cfg["target"]),
+                weight=[_floats(row) for row in cfg["weight"]],
+                width=float(cfg["width"]),
+            )
+        except (KeyError, ValueError) as err:
+            raise TaskError(f"task.reward is not a valid saturating reward: {err}") from err
+    spec = getattr(env, "reward_spec", None)
+    if spec is None:
+        raise TaskError(f"{env_id} has no reward_spec: describe its reward under task.reward")
+    if spec.state_dim != state_dim:
+        raise TaskError(f"{env_id}.reward_spec is for {spec.state_dim}-D states, observations are {state_dim}-D")
+    return spec
+
+
+def _floats(values: Sequence[Any]) -> list[float]:
+    return [float(v) for v in values]

@@ -1,0 +1,198 @@
+"""Benchmark one moment-matching rollout plus its policy gradient (H = 50, E = 4, GP input 6).
+
+Cart-pole shape: state [x, ẋ, θ, θ̇] with θ an angle, GP input [x, ẋ, θ̇, sin θ, cos θ, u], an
+RBF policy with 50 basis functions squashed to ±10 N, the tip-distance reward. Each
+configuration (n, dtype) runs in a fresh subprocess so that its peak resident memory
+(``resource.getrusage`` max RSS) is its own. Writes JSON (default ``docs/bench/rollout.json``)
+and prints a markdown table. ``--dense`` is the ablation without the blocked kernel sums.
+
+    .venv/bin/python scripts/bench_rollout.py [--sizes 250 500 1000] [--repeats 3] [--dense]
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import platform
+import resource
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from envs.rewards import SaturatingReward
+from qtl.features import AngleFeatures
+from qtl.gaussian import Gaussian
+from qtl.models import DynamicsGP
+from qtl.policies import RBFPolicy, SquashedPolicy
+from qtl.propagation import MomentMatching, kernel_moments
+from qtl.rewards import ExpectedSaturatingReward
+
+HORIZON = 50
+STATE_DIM = 4
+ANGLE_DIMS = (2,)
+NUM_BASIS = 50
+ACTION_BOUND = 10.0
+POLE_LENGTH = 0.6
+COST_WIDTH = 0.25
+THREADS = int(os.environ.get("BENCH_THREADS", "2"))
+DTYPES = {"float64": torch.float64, "float32": torch.float32}
+BENCH_DIR = Path(__file__).resolve().parent.parent / "docs" / "bench"
+
+
+def cartpole_reward() -> ExpectedSaturatingReward:
+    """Tip distance to the upright target, width 0.25 m."""
+    tip = np.array([[1.0, 0.0, 0.0, POLE_LENGTH, 0.0], [0.0, 0.0, 0.0, 0.0, -POLE_LENGTH]])
+    spec = SaturatingReward(
+        state_dim=STATE_DIM,
+        angle_dims=ANGLE_DIMS,
+        target=(0.0, 0.0, 0.0, 0.0, -1.0),
+        weight=tuple(map(tuple, tip.T @ tip)),
+        width=COST_WIDTH,
+    )
+    return ExpectedSaturatingReward.from_spec(spec)
+
+
+def build(n: int, dtype: torch.dtype) -> tuple[MomentMatching, Gaussian]:
+    """A GP on n synthetic cart-pole-like transitions, an RBF policy, and the start distribution."""
+    gen = torch.Generator().manual_seed(0)
+    x = torch.randn(n, STATE_DIM, generator=gen, dtype=torch.float64) * torch.tensor([1.0, 2.0, 3.0, 4.0])
+    u = ACTION_BOUND * (2 * torch.rand(n, 1, generator=gen, dtype=torch.float64) - 1)
+    feats = AngleFeatures(STATE_DIM, ANGLE_DIMS)(x)
+    delta = 0.1 * torch.stack([x[:, 1], torch.sin(x[:, 2]) + 0.05 * u[:, 0], x[:, 3], torch.cos(x[:, 2]) * x[:, 3]], -1)
+    model = DynamicsGP(torch.cat([feats, u], -1), delta + 0.01 * torch.randn(n, STATE_DIM, generator=gen))
+    policy = SquashedPolicy(RBFPolicy(feats.shape[-1], 1, NUM_BASIS, generator=gen), ACTION_BOUND).to(dtype)
+    propagator = MomentMatching(model.posterior_cache(), policy, cartpole_reward(), angle_dims=ANGLE_DIMS, dtype=dtype)
+    start = Gaussian(torch.zeros(STATE_DIM, dtype=dtype), 0.01 * torch.eye(STATE_DIM, dtype=dtype))
+    return propagator, start
+
+
+def rollout_and_gradient(propagator: MomentMatching, start: Gaussian) -> float:
+    """One rollout of H steps and the gradient of V w.r.t. ψ; returns V."""
+    propagator.policy.zero_grad()
+    value = propagator.expected_return(start, HORIZON)
+    value.backward()
+    return float(value.detach())
+
+
+def dense_weighted_exp_sum(a: torch.Tensor, b: torch.Tensor, w: torch.Tensor, block_rows: int | None = None):
+    """Ablation: Σ W ∘ exp(A Bᵀ) as plain autograd ops on the whole `n x n` matrices."""
+    return (w * torch.exp(a @ b.mT)).sum((-2, -1))
+
+
+def worker(n: int, dtype_name: str, repeats: int, dense: bool = False) -> dict:
+    """Measure one configuration in this process."""
+    torch.set_num_threads(THREADS)
+    if dense:
+        kernel_moments.weighted_exp_sum = dense_weighted_exp_sum
+    propagator, start = build(n, DTYPES[dtype_name])
+    rss_setup = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    value = rollout_and_gradient(propagator, start)  # warm-up
+    times = []
+    for _ in range(repeats):
+        tic = time.perf_counter()
+        rollout_and_gradient(propagator, start)
+        times.append(time.perf_counter() - tic)
+    forward = []
+    for _ in range(repeats):
+        tic = time.perf_counter()
+        with torch.no_grad():
+            propagator.expected_return(start, HORIZON)
+        forward.append(time.perf_counter() - tic)
+    rss_peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return {
+        "n": n,
+        "dtype": dtype_name,
+        "horizon": HORIZON,
+        "value": value,
+        "rollout_grad_s_median": statistics.median(times),
+        "rollout_grad_s_min": min(times),
+        "rollout_only_s_median": statistics.median(forward),
+        "peak_rss_mib": rss_peak / 1024,
+        "setup_rss_mib": rss_setup / 1024,
+        "repeats": repeats,
+        "variant": "dense" if dense else "blocked",
+    }
+
+
+def machine() -> dict:
+    """Platform and CPU model."""
+    cpu = platform.processor()
+    try:
+        lscpu = subprocess.run(["lscpu"], capture_output=True, text=True, check=True).stdout
+        cpu = next((line.split(":", 1)[1].strip() for line in lscpu.splitlines() if "Model name" in line), cpu)
+    except (OSError, subprocess.CalledProcessError):
+        pass
+    return {
+        "platform": platform.platform(),
+        "python": platform.python_version(),
+        "torch": torch.__version__,
+        "cpu": cpu,
+        "cpu_count": os.cpu_count(),
+        "threads": THREADS,
+    }
+
+
+def markdown(results: list[dict], info: dict, command: str, date: str) -> str:
+    """The table for docs/benchmarks.md."""
+    lines = [
+        f"Command: `{command}`  ",
+        f"Date: {date}  ",
+        f"Machine: {info['cpu']}, {info['cpu_count']} cores, torch {info['torch']} ({info['threads']} threads), "
+        f"{info['platform']}",
+        "",
+        "| n | dtype | variant | rollout + gradient (s, median) | rollout only (s) | peak RSS (MiB) "
+        "| setup RSS (MiB) | V |",
+        "| ---: | --- | --- | ---: | ---: | ---: | ---: | ---: |",
+    ]
+    for r in results:
+        lines.append(
+            f"| {r['n']} | {r['dtype']} | {r['variant']} | {r['rollout_grad_s_median']:.2f} | "
+            f"{r['rollout_only_s_median']:.2f} | {r['peak_rss_mib']:.0f} | {r['setup_rss_mib']:.0f} | "
+            f"{r['value']:.4f} |"
+        )
+    return "\n".join(lines)
+
+
+def main() -> None:
+    """Run every configuration in its own subprocess; write JSON, print markdown."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--sizes", type=int, nargs="+", default=[250, 500, 1000])
+    parser.add_argument("--dtypes", nargs="+", default=list(DTYPES), choices=list(DTYPES))
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--output", type=Path, help="JSON path (default docs/bench/rollout[_dense].json)")
+    parser.add_argument(
+        "--dense",
+        action="store_true",
+        help="ablation: the n x n kernel sums as plain autograd ops (no blocking, n² autograd memory per step)",
+    )
+    parser.add_argument("--worker", nargs=2, metavar=("N", "DTYPE"), help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.worker:
+        print(json.dumps(worker(int(args.worker[0]), args.worker[1], args.repeats, args.dense)))
+        return
+    results = []
+    for n in args.sizes:
+        for dtype_name in args.dtypes:
+            cmd = [sys.executable, __file__, "--worker", str(n), dtype_name, "--repeats", str(args.repeats)]
+            cmd += ["--dense"] if args.dense else []
+            out = subprocess.run(cmd, capture_output=True, text=True, check=True).stdout
+            results.append(json.loads(out.strip().splitlines()[-1]))
+            print(json.dumps(results[-1]), file=sys.stderr)
+    info = machine()
+    date = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    command = "python " + " ".join([os.path.relpath(__file__), *sys.argv[1:]])
+    output = args.output or BENCH_DIR / ("rollout_dense.json" if args.dense else "rollout.json")
+    output.parent.mkdir(parents=True, exist_ok=True)
+    output.write_text(json.dumps({"date": date, "command": command, "machine": info, "results": results}, indent=2))
+    print(markdown(results, info, command, date))
+
+
+if __name__ == "__main__":
+    main()

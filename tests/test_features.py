@@ -1,0 +1,105 @@
+"""Angle features: the project convention, exact moments (PILCO gTrig), gradients, PSD."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from envs.rewards import augment_angles
+from qtl.features import AngleFeatures, trig_moments
+from qtl.gaussian import Gaussian
+
+DTYPE = torch.float64
+NUM_SAMPLES = 100_000
+
+
+@pytest.mark.parametrize("angle_dims", [(), (2,), (0, 3), (3, 1)])
+def test_matches_env_convention(angle_dims):
+    x = torch.randn(7, 4, generator=torch.Generator().manual_seed(0), dtype=DTYPE)
+    ours = AngleFeatures(4, angle_dims)(x)
+    theirs = augment_angles(x.numpy(), angle_dims)
+    np.testing.assert_allclose(ours.numpy(), theirs, rtol=0, atol=1e-14)
+
+
+@pytest.mark.parametrize(("angle_dims", "scale"), list(itertools.product([(2,), (0, 3), (3, 1)], [0.3, 2.0])))
+def test_moments_against_monte_carlo(mc, cov_factory, angle_dims, scale):
+    gen = torch.Generator().manual_seed(len(angle_dims) + int(10 * scale))
+    mean = torch.randn(4, generator=gen, dtype=DTYPE)
+    state = Gaussian(mean, cov_factory(4, scale, gen))
+    features = AngleFeatures(4, angle_dims)
+    result = features.moments(state)
+    x = state.sample(NUM_SAMPLES, generator=gen)
+    mc.assert_moments(result, x, features(x))
+    # The gain is Σ⁻¹ cov[x, y] (Stein's lemma).
+    torch.testing.assert_close(state.cov @ result.gain, result.cross_cov)
+
+
+def test_no_angles_is_identity():
+    cov = torch.eye(3, dtype=DTYPE) * 0.5
+    result = AngleFeatures(3).moments(Gaussian(torch.ones(3, dtype=DTYPE), cov))
+    torch.testing.assert_close(result.cov, cov)
+    torch.testing.assert_close(result.gain, torch.eye(3, dtype=DTYPE))
+
+
+def test_delta_input_gives_point_features():
+    x = torch.tensor([0.1, -0.4, 2.5], dtype=DTYPE)
+    features = AngleFeatures(3, (2, 0))
+    result = features.moments(Gaussian(x, torch.zeros(3, 3, dtype=DTYPE)))
+    torch.testing.assert_close(result.mean, features(x))
+    assert result.cov.abs().max() < 1e-15
+
+
+def test_batched_equals_per_item(cov_factory):
+    gen = torch.Generator().manual_seed(3)
+    means = torch.randn(2, 3, 4, generator=gen, dtype=DTYPE)
+    covs = cov_factory(4, 1.0, gen, batch=(2, 3))
+    features = AngleFeatures(4, (1, 2))
+    batched = features.moments(Gaussian(means, covs))
+    for i, j in itertools.product(range(2), range(3)):
+        single = features.moments(Gaussian(means[i, j], covs[i, j]))
+        torch.testing.assert_close(batched.mean[i, j], single.mean)
+        torch.testing.assert_close(batched.cov[i, j], single.cov)
+        torch.testing.assert_close(batched.cross_cov[i, j], single.cross_cov)
+
+
+def test_gradcheck():
+    gen = torch.Generator().manual_seed(4)
+    mean = torch.randn(3, generator=gen, dtype=DTYPE, requires_grad=True)
+    root = (0.5 * torch.randn(3, 3, generator=gen, dtype=DTYPE)).requires_grad_()
+    features = AngleFeatures(3, (0, 2))
+
+    def moments(m, r):
+        out = features.moments(Gaussian(m, r @ r.T))
+        return out.mean, out.cov, out.cross_cov
+
+    assert torch.autograd.gradcheck(moments, (mean, root))
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), scale=st.floats(1e-3, 5.0))
+def test_covariance_is_psd(psd, cov_factory, seed, scale):
+    gen = torch.Generator().manual_seed(seed)
+    state = Gaussian(3 * torch.randn(5, generator=gen, dtype=DTYPE), cov_factory(5, scale, gen))
+    result = AngleFeatures(5, (0, 2, 4)).moments(state)
+    psd(result.cov)
+    # The joint [x, y] must be PSD too, since the rollout chains through it.
+    joint = torch.cat(
+        [torch.cat([state.cov, result.cross_cov], -1), torch.cat([result.cross_cov.T, result.cov], -1)],
+        -2,
+    )
+    psd(joint)
+
+
+def test_trig_moments_of_one_angle_closed_form():
+    mean, var = torch.tensor([0.7], dtype=DTYPE), torch.tensor([[0.4]], dtype=DTYPE)
+    out_mean, out_cov, _ = trig_moments(mean, var)
+    damp = torch.exp(-var[0, 0] / 2)
+    torch.testing.assert_close(out_mean, damp * torch.cat([mean.sin(), mean.cos()]))
+    # var(sin θ) = ½(1 − e^{−2σ²} cos 2μ) − E[sin θ]².
+    expected = 0.5 * (1 - torch.exp(-2 * var[0, 0]) * torch.cos(2 * mean[0])) - out_mean[0] ** 2
+    torch.testing.assert_close(out_cov[0, 0], expected)

@@ -1,0 +1,107 @@
+"""The learning loop: a tiny real run, resume equals an uninterrupted run, same seed same metrics."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import pytest
+import torch
+from hydra import compose, initialize_config_module
+
+from qtl.checkpoint import CheckpointError, latest_checkpoint, load_checkpoint
+from qtl.config import register_configs
+from qtl.loop import run
+from qtl.task import TaskError
+
+# A budget that exercises every line of the loop in seconds: short horizon, few evaluations.
+TINY = [
+    "task.env.horizon=8",
+    "task.success.last_steps=3",
+    "task.policy_size=5",
+    "optimizer.max_iter=3",
+    "optimizer.restarts=2",
+    "model.restarts=1",
+    "model.max_iter=5",
+    "progress=false",
+    "figure_every=1",
+    "threads=1",
+]
+
+
+def tiny_config(*overrides: str):
+    register_configs()
+    with initialize_config_module(config_module="qtl.configs", version_base="1.3"):
+        return compose(config_name="train", overrides=[*TINY, *overrides])
+
+
+def read_csv(path: Path) -> list[dict[str, str]]:
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def test_tiny_run_leaves_metrics_checkpoints_and_events(tmp_path):
+    result = run(tiny_config("episodes=2"), tmp_path)
+    rows = read_csv(tmp_path / "metrics.csv")
+    assert [r["episode"] for r in rows] == ["0", "1", "2"]
+    assert [r["kind"] for r in rows] == ["random", "policy", "policy"]
+    assert {"episode", "return", "predicted_return", "success"} <= set(rows[0])
+    assert all(float(r["predicted_return"]) >= 0 for r in rows[1:])
+    assert float(rows[1]["theta/out0/noise_variance"]) > 0
+    assert len(read_csv(tmp_path / "timings.csv")) == 3
+    assert sorted(p.name for p in (tmp_path / "checkpoints").iterdir()) == [
+        "episode_0000.pt", "episode_0001.pt", "episode_0002.pt"]
+    state = load_checkpoint(latest_checkpoint(tmp_path))
+    assert state["episode"] == 2 and len(state["dataset"]["states"]) == 3
+    assert result.returns == [float(r["return"]) for r in rows]
+
+
+def test_same_seed_gives_identical_metrics_and_another_seed_does_not(tmp_path):
+    run(tiny_config("episodes=1", "seed=3"), tmp_path / "a")
+    run(tiny_config("episodes=1", "seed=3"), tmp_path / "b")
+    run(tiny_config("episodes=1", "seed=4"), tmp_path / "c")
+    a, b, c = ((tmp_path / d / "metrics.csv").read_text() for d in "abc")
+    assert a == b
+    assert a != c
+
+
+def test_resume_continues_exactly_as_an_uninterrupted_run(tmp_path):
+    run(tiny_config("episodes=3"), tmp_path / "whole")
+    run(tiny_config("episodes=1"), tmp_path / "split")  # "interrupted" after episode 1
+    run(tiny_config("episodes=3"), tmp_path / "split", resume=True)
+    whole, split = tmp_path / "whole", tmp_path / "split"
+    assert (whole / "metrics.csv").read_text() == (split / "metrics.csv").read_text()
+    assert len(read_csv(split / "timings.csv")) == 4
+    a = load_checkpoint(latest_checkpoint(whole))
+    b = load_checkpoint(latest_checkpoint(split))
+    for sa, sb in zip(a["dataset"]["states"], b["dataset"]["states"], strict=True):
+        torch.testing.assert_close(sa, sb, rtol=0, atol=0)
+    for name in a["policy"]:
+        torch.testing.assert_close(a["policy"][name], b["policy"][name], rtol=0, atol=0)
+
+
+def test_resume_from_missing_or_corrupt_directory_is_named(tmp_path):
+    with pytest.raises(CheckpointError, match="does not exist"):
+        run(tiny_config("episodes=1"), tmp_path / "absent", resume=True)
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(CheckpointError, match="holds no checkpoints"):
+        run(tiny_config("episodes=1"), tmp_path / "empty", resume=True)
+    (tmp_path / "bad" / "checkpoints").mkdir(parents=True)
+    (tmp_path / "bad" / "checkpoints" / "episode_0000.pt").write_bytes(b"garbage")
+    with pytest.raises(CheckpointError, match="corrupt checkpoint"):
+        run(tiny_config("episodes=1"), tmp_path / "bad", resume=True)
+
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        (["task.env.id=qtl/NoSuchEnv-v0"], "cannot make task.env.id='qtl/NoSuchEnv-v0'"),
+        (["task.horizon=0"], "task.horizon must be a positive number of steps"),
+        (["task.env.pole_mass=-1.0"], "bad constructor kwargs .* pole_mass"),
+        (["task.angle_dims=[7]"], "task.angle_dims \\[7\\] must be distinct indices below 4"),
+    ],
+)
+def test_bad_task_fails_before_any_work(tmp_path, overrides, message):
+    with pytest.raises(TaskError, match=message):
+        run(tiny_config(*overrides), tmp_path)
+    assert not (tmp_path / "metrics.csv").exists()

@@ -1,0 +1,122 @@
+"""Saturating reward (Eq. 13) in torch: per-state values, expectation under a Gaussian, gradients."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from envs.rewards import SaturatingReward
+from qtl.gaussian import Gaussian
+from qtl.rewards import ExpectedSaturatingReward
+
+DTYPE = torch.float64
+NUM_SAMPLES = 100_000
+POLE_LENGTH = 0.6
+COST_WIDTH = 0.25
+# Loose check of the angle case: E[r] uses the moment-matched Gaussian of (…, sin θ, cos θ),
+# which is not the distribution of the features; with small angle spread the error is small.
+ANGLE_REWARD_REL_TOL = 0.05
+
+
+def cartpole_spec(length: float = POLE_LENGTH, width: float = COST_WIDTH) -> SaturatingReward:
+    """Tip distance of ../shared/TASKS.md: y = [x, ẋ, θ̇, sin θ, cos θ], y* = (0, 0, 0, 0, −1)."""
+    tip = np.array([[1.0, 0.0, 0.0, length, 0.0], [0.0, 0.0, 0.0, 0.0, -length]])
+    weight = tip.T @ tip
+    return SaturatingReward(
+        state_dim=4,
+        angle_dims=(2,),
+        target=(0.0, 0.0, 0.0, 0.0, -1.0),
+        weight=tuple(map(tuple, weight)),
+        width=width,
+    )
+
+
+def plain_spec() -> SaturatingReward:
+    """A 3-D state without angles and a full-rank weight."""
+    weight = ((2.0, 0.3, 0.0), (0.3, 1.0, 0.1), (0.0, 0.1, 0.5))
+    return SaturatingReward(state_dim=3, angle_dims=(), target=(0.5, -0.2, 1.0), weight=weight, width=0.8)
+
+
+def test_per_state_value_matches_env_spec_and_tip_distance():
+    spec = cartpole_spec()
+    reward = ExpectedSaturatingReward.from_spec(spec)
+    x = torch.randn(50, 4, generator=torch.Generator().manual_seed(0), dtype=DTYPE) * 2
+    np.testing.assert_allclose(reward(x).numpy(), spec(x.numpy()), rtol=1e-12)
+    pos, theta, ell = x[:, 0], x[:, 2], POLE_LENGTH
+    d2 = pos**2 + 2 * pos * ell * theta.sin() + 2 * ell**2 + 2 * ell**2 * theta.cos()
+    torch.testing.assert_close(reward(x), torch.exp(-d2 / (2 * COST_WIDTH**2)))
+    upright = torch.tensor([0.0, 0.0, math.pi, 0.0], dtype=DTYPE)
+    torch.testing.assert_close(reward(upright), torch.tensor(1.0, dtype=DTYPE))
+
+
+def test_expectation_without_angles_against_monte_carlo(mc, cov_factory):
+    reward = ExpectedSaturatingReward.from_spec(plain_spec())
+    gen = torch.Generator().manual_seed(1)
+    for scale in (0.1, 0.7, 2.0):
+        state = Gaussian(torch.tensor([0.2, 0.1, 0.6], dtype=DTYPE), cov_factory(3, scale, gen))
+        mc.assert_mean(reward.expected(state), reward(state.sample(NUM_SAMPLES, generator=gen)))
+
+
+def test_augmented_expectation_against_monte_carlo(mc, cov_factory):
+    # Exact check of the formula on Gaussian features (including a rank-deficient W).
+    reward = ExpectedSaturatingReward.from_spec(cartpole_spec())
+    gen = torch.Generator().manual_seed(2)
+    y = Gaussian(torch.tensor([0.1, 0.0, 0.3, 0.2, -0.8], dtype=DTYPE), cov_factory(5, 0.3, gen))
+    samples = y.sample(NUM_SAMPLES, generator=gen)
+    err = samples - reward.target
+    per_sample = torch.exp(-0.5 * torch.einsum("ni,ij,nj->n", err, reward.weight, err))
+    mc.assert_mean(reward.expected_augmented(y), per_sample)
+
+
+def test_expectation_with_angles_is_close_for_small_spread(cov_factory):
+    reward = ExpectedSaturatingReward.from_spec(cartpole_spec())
+    gen = torch.Generator().manual_seed(3)
+    state = Gaussian(torch.tensor([0.05, 0.0, 3.0, 0.0], dtype=DTYPE), cov_factory(4, 0.1, gen))
+    sampled = reward(state.sample(NUM_SAMPLES, generator=gen)).mean()
+    assert abs(reward.expected(state) - sampled) <= ANGLE_REWARD_REL_TOL * sampled
+
+
+def test_batched_and_delta_input():
+    reward = ExpectedSaturatingReward.from_spec(cartpole_spec())
+    means = torch.randn(3, 4, generator=torch.Generator().manual_seed(4), dtype=DTYPE)
+    expected = reward.expected(Gaussian(means, torch.zeros(3, 4, 4, dtype=DTYPE)))
+    torch.testing.assert_close(expected, reward(means))
+    cov = 0.01 * torch.eye(4, dtype=DTYPE)
+    batched = reward.expected(Gaussian(means, cov))
+    for i in range(3):
+        torch.testing.assert_close(batched[i], reward.expected(Gaussian(means[i], cov)))
+
+
+@pytest.mark.parametrize("spec", [cartpole_spec(), plain_spec()], ids=["cartpole", "plain"])
+def test_gradcheck(spec):
+    reward = ExpectedSaturatingReward.from_spec(spec)
+    gen = torch.Generator().manual_seed(5)
+    dim = spec.state_dim
+    mean = torch.randn(dim, generator=gen, dtype=DTYPE).requires_grad_()
+    root = (0.3 * torch.randn(dim, dim, generator=gen, dtype=DTYPE)).requires_grad_()
+    assert torch.autograd.gradcheck(lambda m, r: reward.expected(Gaussian(m, r @ r.T)), (mean, root))
+    assert torch.autograd.gradcheck(reward, (mean,))
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), scale=st.floats(1e-3, 10.0))
+def test_expectation_is_a_probability(cov_factory, seed, scale):
+    reward = ExpectedSaturatingReward.from_spec(cartpole_spec())
+    gen = torch.Generator().manual_seed(seed)
+    state = Gaussian(2 * torch.randn(4, generator=gen, dtype=DTYPE), cov_factory(4, scale, gen))
+    value = reward.expected(state)
+    assert 0.0 <= value <= 1.0
+
+
+def test_rejects_bad_specs():
+    with pytest.raises(ValueError):
+        ExpectedSaturatingReward(2, (), [0.0, 0.0], [[1.0, 2.0], [0.0, 1.0]])
+    with pytest.raises(ValueError):
+        ExpectedSaturatingReward(2, (), [0.0, 0.0], [[-1.0, 0.0], [0.0, 1.0]])
+    with pytest.raises(ValueError):
+        ExpectedSaturatingReward(2, (1,), [0.0, 0.0], [[1.0, 0.0], [0.0, 1.0]])
