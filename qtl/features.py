@@ -15,6 +15,18 @@ from torch import Tensor
 from qtl.gaussian import Gaussian, MomentMatch, symmetrize
 
 
+def _exp_times_expm1(log_scale: Tensor, s: Tensor) -> Tensor:
+    """exp(log_scale) · (e^s − 1), accurate for small s and free of overflow for large |s|.
+
+    Here |s| <= −log_scale (Cauchy–Schwarz: |σ_ij| <= (σ_i² + σ_j²)/2), so for s >= 0 the
+    form exp(log_scale + s)(1 − e^{−s}) never overflows, where exp(log_scale)·expm1(s) would
+    give inf · 0 once σ² passes ~700. Both branches are evaluated on clamped arguments, so
+    neither produces inf and their gradients stay finite.
+    """
+    pos, neg = s.clamp_min(0.0), s.clamp_max(0.0)
+    return torch.where(s >= 0, torch.exp(log_scale + pos) * -torch.expm1(-pos), torch.exp(log_scale) * torch.expm1(neg))
+
+
 def trig_moments(mean: Tensor, cov: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """Exact moments of (sin φ_1, cos φ_1, …, sin φ_K, cos φ_K) for φ ~ N(mean, cov).
 
@@ -29,13 +41,14 @@ def trig_moments(mean: Tensor, cov: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     e_sin, e_cos = damp * mean.sin(), damp * mean.cos()
     out_mean = torch.stack([e_sin, e_cos], dim=-1).flatten(-2)
 
-    outer = damp[..., :, None] * damp[..., None, :]  # exp(−(σ_i² + σ_j²)/2)
+    log_outer = -0.5 * (var[..., :, None] + var[..., None, :])  # log exp(−(σ_i² + σ_j²)/2)
     diff = mean[..., :, None] - mean[..., None, :]
     plus = mean[..., :, None] + mean[..., None, :]
-    grow, shrink = torch.expm1(cov), torch.expm1(-cov)  # e^{σ_ij} − 1, e^{−σ_ij} − 1
-    ss = 0.5 * outer * (grow * diff.cos() - shrink * plus.cos())
-    cc = 0.5 * outer * (grow * diff.cos() + shrink * plus.cos())
-    sc = 0.5 * outer * (shrink * plus.sin() + grow * diff.sin())  # cov[sin φ_i, cos φ_j]
+    grow = _exp_times_expm1(log_outer, cov)  # exp(−(σ_i² + σ_j²)/2) (e^{σ_ij} − 1)
+    shrink = _exp_times_expm1(log_outer, -cov)  # exp(−(σ_i² + σ_j²)/2) (e^{−σ_ij} − 1)
+    ss = 0.5 * (grow * diff.cos() - shrink * plus.cos())
+    cc = 0.5 * (grow * diff.cos() + shrink * plus.cos())
+    sc = 0.5 * (shrink * plus.sin() + grow * diff.sin())  # cov[sin φ_i, cos φ_j]
     blocks = torch.stack([ss, sc, sc.mT, cc], dim=-1).unflatten(-1, (2, 2))  # ... K K 2 2
     out_cov = blocks.permute(*range(blocks.dim() - 4), -4, -2, -3, -1).reshape(*blocks.shape[:-4], 2 * num, 2 * num)
 

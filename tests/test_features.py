@@ -103,3 +103,15 @@ def test_trig_moments_of_one_angle_closed_form():
     # var(sin θ) = ½(1 − e^{−2σ²} cos 2μ) − E[sin θ]².
     expected = 0.5 * (1 - torch.exp(-2 * var[0, 0]) * torch.cos(2 * mean[0])) - out_mean[0] ** 2
     torch.testing.assert_close(out_cov[0, 0], expected)
+
+
+def test_trig_moments_stay_finite_for_huge_variances():
+    """Regression: exp(−σ²)·expm1(σ²) overflowed to inf · 0 = NaN once σ² passed ~709."""
+    mean = torch.tensor([0.3, -1.0], dtype=torch.float64, requires_grad=True)
+    cov = torch.tensor([[800.0, 500.0], [500.0, 900.0]], dtype=torch.float64, requires_grad=True)
+    out_mean, out_cov, gain = trig_moments(mean, cov)
+    assert torch.isfinite(out_mean).all() and torch.isfinite(out_cov).all() and torch.isfinite(gain).all()
+    # Far spread angles: sin and cos are uncorrelated with variance ½ each.
+    torch.testing.assert_close(out_cov, 0.5 * torch.eye(4, dtype=torch.float64), atol=1e-12, rtol=0)
+    (out_cov.sum() + out_mean.sum()).backward()
+    assert torch.isfinite(mean.grad).all() and torch.isfinite(cov.grad).all()

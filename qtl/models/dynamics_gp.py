@@ -39,6 +39,8 @@ HEURISTIC_SNR = 10.0
 MIN_TRAIN_POINTS = 3
 # Dataset size below which GPyTorch uses Cholesky; far above any exact-GP dataset we handle.
 EXACT_CHOLESKY_SIZE = 10**7
+# Test inputs per GPyTorch prediction call in `predict`.
+PREDICT_CHUNK = 1024
 # Fitting defaults.
 DEFAULT_RESTARTS = 3
 DEFAULT_MAX_ITER = 100
@@ -319,12 +321,17 @@ class DynamicsGP(gpytorch.models.ExactGP):
             raise ValueError("x contains non-finite value(s) (NaN or inf)")
         self.eval()
         self.likelihood.eval()
-        x = x.to(self.train_x).expand(self.num_outputs, *x.shape)
+        x = x.to(self.train_x)
+        means, variances = [], []
         with torch.no_grad(), exact_gp_settings():
-            dist = self(x)
-            if include_noise:
-                dist = self.likelihood(dist)
-            return dist.mean.T, dist.variance.T
+            # In chunks: GPyTorch forms the test-test covariance of each call, `m x m` per output.
+            for chunk in x.split(PREDICT_CHUNK):
+                dist = self(chunk.expand(self.num_outputs, *chunk.shape))
+                if include_noise:
+                    dist = self.likelihood(dist)
+                means.append(dist.mean.T)
+                variances.append(dist.variance.T)
+        return torch.cat(means), torch.cat(variances)
 
     def posterior_cache(self) -> GPPosteriorCache:
         """(K + σ_ε²I)⁻¹ and β = (K + σ_ε²I)⁻¹y per output, for prediction at uncertain inputs."""

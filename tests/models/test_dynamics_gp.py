@@ -241,3 +241,13 @@ def test_missing_and_corrupt_checkpoints_are_named(tmp_path):
     torch.save({"format": "something else"}, wrong)
     with pytest.raises(ValueError, match="not a DynamicsGP state"):
         DynamicsGP.load(wrong)
+
+
+def test_prediction_at_many_points_is_chunked_and_consistent():
+    x, y = make_data(30, 0.1, seed=20)
+    model = DynamicsGP(x, y, random_theta(2, 3, seed=21))
+    x_test, _ = make_data(3000, 0.0, seed=22)  # several chunks; a single call would form 3000²
+    mean, var = model.predict(x_test)
+    ref_mean, ref_var = direct_posterior(x, y, model.hyperparameters, x_test)
+    torch.testing.assert_close(mean, ref_mean, rtol=1e-8, atol=1e-10)
+    torch.testing.assert_close(var, ref_var, rtol=1e-6, atol=1e-10)
