@@ -4,7 +4,7 @@ Cart-pole shape: state [x, ẋ, θ, θ̇] with θ an angle, GP input [x, ẋ, θ
 RBF policy with 50 basis functions squashed to ±10 N, the tip-distance reward. Each
 configuration (n, dtype) runs in a fresh subprocess so that its peak resident memory
 (``resource.getrusage`` max RSS) is its own. Writes JSON (default ``docs/bench/rollout.json``)
-and prints a markdown table. ``--dense`` is the ablation without the blocked kernel sums.
+and its section of ``docs/benchmarks.md``. ``--dense`` is the ablation without the blocked kernel sums.
 
     .venv/bin/python scripts/bench_rollout.py [--sizes 250 500 1000] [--repeats 3] [--dense]
 """
@@ -12,10 +12,8 @@ and prints a markdown table. ``--dense`` is the ablation without the blocked ker
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
 import os
-import platform
 import resource
 import statistics
 import subprocess
@@ -25,6 +23,9 @@ from pathlib import Path
 
 import numpy as np
 import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import benchlib
 
 from envs.rewards import SaturatingReward
 from qtl.features import AngleFeatures
@@ -43,6 +44,18 @@ POLE_LENGTH = 0.6
 COST_WIDTH = 0.25
 THREADS = int(os.environ.get("BENCH_THREADS", "2"))
 DTYPES = {"float64": torch.float64, "float32": torch.float32}
+DESCRIPTION = (
+    "One moment-matching rollout of H = 50 steps plus the gradient of V w.r.t. the policy parameters ψ "
+    "(`MomentMatching.expected_return(...).backward()`), cart-pole shape: E = 4 outputs, GP input "
+    "[x, ẋ, θ̇, sin θ, cos θ, u] (6-D), RBF policy with 50 basis functions squashed to ±10, tip-distance "
+    "reward. Each configuration runs in a fresh subprocess; \"peak RSS\" is its `getrusage` max RSS "
+    "(includes torch/GPyTorch and the model), \"setup RSS\" the same before the first rollout. Times are "
+    "medians of the repeats after one warm-up."
+)
+DENSE_DESCRIPTION = (
+    "Ablation: the `n x n` kernel sums as plain autograd ops (whole matrices, kept for backward at every "
+    "step) instead of the blocked, recomputing `weighted_exp_sum`."
+)
 BENCH_DIR = Path(__file__).resolve().parent.parent / "docs" / "bench"
 
 
@@ -121,31 +134,18 @@ def worker(n: int, dtype_name: str, repeats: int, dense: bool = False) -> dict:
     }
 
 
-def machine() -> dict:
-    """Platform and CPU model."""
-    cpu = platform.processor()
-    try:
-        lscpu = subprocess.run(["lscpu"], capture_output=True, text=True, check=True).stdout
-        cpu = next((line.split(":", 1)[1].strip() for line in lscpu.splitlines() if "Model name" in line), cpu)
-    except (OSError, subprocess.CalledProcessError):
-        pass
-    return {
-        "platform": platform.platform(),
-        "python": platform.python_version(),
-        "torch": torch.__version__,
-        "cpu": cpu,
-        "cpu_count": os.cpu_count(),
-        "threads": THREADS,
-    }
-
-
-def markdown(results: list[dict], info: dict, command: str, date: str) -> str:
-    """The table for docs/benchmarks.md."""
+def markdown(results: list[dict], info: dict, dense: bool) -> str:
+    """The section of docs/benchmarks.md."""
+    m = info["machine"]
+    title = "## Rollout (moment matching)" if not dense else "## Rollout (moment matching): dense ablation"
+    intro = DESCRIPTION if not dense else DENSE_DESCRIPTION
     lines = [
-        f"Command: `{command}`  ",
-        f"Date: {date}  ",
-        f"Machine: {info['cpu']}, {info['cpu_count']} cores, torch {info['torch']} ({info['threads']} threads), "
-        f"{info['platform']}",
+        title,
+        "",
+        intro,
+        "",
+        f"`{info['command']}` — {info['date']}, {m['cpu']} ({m['cores']} cores), {THREADS} torch threads, "
+        f"torch {m['torch']}. Results: `{info['output']}`.",
         "",
         "| n | dtype | variant | rollout + gradient (s, median) | rollout only (s) | peak RSS (MiB) "
         "| setup RSS (MiB) | V |",
@@ -185,14 +185,14 @@ def main() -> None:
             out = subprocess.run(cmd, capture_output=True, text=True, check=True).stdout
             results.append(json.loads(out.strip().splitlines()[-1]))
             print(json.dumps(results[-1]), file=sys.stderr)
-    info = machine()
-    date = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
-    command = "python " + " ".join([os.path.relpath(__file__), *sys.argv[1:]])
     output = args.output or BENCH_DIR / ("rollout_dense.json" if args.dense else "rollout.json")
+    info = {"date": benchlib.today(), "command": benchlib.command_line(), "machine": benchlib.machine(),
+            "output": str(output.relative_to(benchlib.ROOT)) if output.is_relative_to(benchlib.ROOT) else str(output)}
     output.parent.mkdir(parents=True, exist_ok=True)
-    output.write_text(json.dumps({"date": date, "command": command, "machine": info, "results": results}, indent=2))
-    print(markdown(results, info, command, date))
-
+    output.write_text(json.dumps({**info, "results": results}, indent=2) + "\n")
+    section = markdown(results, info, args.dense)
+    benchlib.write_section("bench_rollout_dense" if args.dense else "bench_rollout", section)
+    print(section)
 
 if __name__ == "__main__":
     main()

@@ -1,0 +1,113 @@
+"""Benchmark — the acceptance figure of the learning loop: PILCO learns the 0.5 kg cart-pole swing-up.
+
+Runs the real CLI (``python -m qtl``) once per seed, in parallel processes of one torch thread
+each, and reports per seed the first successful episode (the task's criterion: the pendulum tip
+within 0.15 m of the upright target for the last 2 s), the learning curve and the wall time per
+episode split into model fitting and policy search. Required: success within 8 episodes (the
+random one included) in at least 4 of 5 seeds. Writes ``docs/bench/cartpole[-<tag>].json`` and
+its table in ``docs/benchmarks.md``; extra arguments are Hydra overrides for every run.
+
+    python scripts/bench_cartpole.py [--seeds 0 1 2 3 4] [--episodes 7] [--jobs 2] [override ...]
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import subprocess
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import benchlib
+
+REQUIRED_EPISODES = 8  # success within this many episodes, the random one included
+REQUIRED_SEEDS = 4  # in at least this many of the seeds
+
+
+def read_csv(path: Path) -> list[dict[str, str]]:
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def run_seed(seed: int, episodes: int, run_dir: Path, overrides: list[str]) -> dict:
+    """One full learning run through the CLI; its per-episode figures."""
+    args = [sys.executable, "-m", "qtl", f"seed={seed}", f"episodes={episodes}", "progress=false", "threads=1",
+            f"hydra.run.dir={run_dir}", *overrides]
+    start = time.perf_counter()
+    done = subprocess.run(args, capture_output=True, text=True)
+    wall = time.perf_counter() - start
+    if done.returncode != 0:
+        raise RuntimeError(f"seed {seed} failed:\n{done.stderr[-3000:]}")
+    rows = read_csv(run_dir / "metrics.csv")
+    timings = read_csv(run_dir / "timings.csv")
+    learned = [t for t, r in zip(timings, rows, strict=True) if r["kind"] == "policy"]
+    successes = [int(r["success"]) for r in rows]
+    first = next((i for i, s in enumerate(successes) if s), None)
+    return {
+        "seed": seed,
+        "run_dir": str(run_dir),
+        "returns": [float(r["return"]) for r in rows],
+        "predicted_returns": [float(r["predicted_return"]) for r in rows],
+        "successes": successes,
+        "first_success": first,
+        "model_fit_s_per_episode": sum(float(t["model_fit_s"]) for t in learned) / max(len(learned), 1),
+        "policy_search_s_per_episode": sum(float(t["policy_search_s"]) for t in learned) / max(len(learned), 1),
+        "wall_s": wall,
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
+    parser.add_argument("--episodes", type=int, default=REQUIRED_EPISODES - 1, help="learned episodes per run")
+    parser.add_argument("--jobs", type=int, default=2, help="runs in parallel (one torch thread each)")
+    parser.add_argument("--tag", default="", help="names the result files and table (e.g. 'particles')")
+    parser.add_argument("--runs-dir", type=Path, default=benchlib.ROOT / "runs" / "bench_cartpole")
+    args, overrides = parser.parse_known_args()
+
+    name = "cartpole" + (f"-{args.tag}" if args.tag else "")
+    runs_dir = args.runs_dir / name
+    with ThreadPoolExecutor(max_workers=args.jobs) as pool:
+        results = list(pool.map(lambda s: run_seed(s, args.episodes, runs_dir / f"seed_{s}", overrides), args.seeds))
+    solved = [r for r in results if r["first_success"] is not None and r["first_success"] < REQUIRED_EPISODES]
+    passed = len(solved) >= min(REQUIRED_SEEDS, len(args.seeds))
+
+    info = {"date": benchlib.today(), "command": benchlib.command_line(), "machine": benchlib.machine(),
+            "overrides": overrides, "episodes_per_run": args.episodes + 1, "jobs": args.jobs,
+            "required": f"success within {REQUIRED_EPISODES} episodes in >= {REQUIRED_SEEDS} of 5 seeds",
+            "passed": passed, "results": results}
+    out = benchlib.ROOT / "docs" / "bench" / f"{name}.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(info, indent=2) + "\n")
+
+    m = info["machine"]
+    lines = [
+        f"## Cart-pole swing-up, 0.5 kg, from scratch{f' ({args.tag})' if args.tag else ''}",
+        "",
+        f"`{info['command']}` — {info['date']}, {m['cpu']} ({m['cores']} cores), {args.jobs} runs in parallel with "
+        f"1 torch thread each, torch {m['torch']}. {args.episodes + 1} episodes per seed (1 random + "
+        f"{args.episodes} learned). Success: tip within 0.15 m of the target for the last 2 s. "
+        f"Results: `docs/bench/{name}.json`.",
+        "",
+        f"**Required: success within {REQUIRED_EPISODES} episodes in at least {REQUIRED_SEEDS} of 5 seeds — "
+        f"{'met' if passed else 'NOT met'} ({len(solved)} of {len(results)}).**",
+        "",
+        "| seed | first success (episode, 0 = random) | returns per episode | model fit (s/episode) | "
+        "policy search (s/episode) | wall (s) |",
+        "| ---: | ---: | --- | ---: | ---: | ---: |",
+    ]
+    for r in results:
+        first = "—" if r["first_success"] is None else str(r["first_success"])
+        curve = " ".join(f"{v:.1f}" for v in r["returns"])
+        lines.append(f"| {r['seed']} | {first} | {curve} | {r['model_fit_s_per_episode']:.1f} | "
+                     f"{r['policy_search_s_per_episode']:.1f} | {r['wall_s']:.0f} |")
+    benchlib.write_section(f"bench_{name}", "\n".join(lines))
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()
