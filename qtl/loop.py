@@ -150,6 +150,8 @@ def run(cfg: DictConfig, output_dir: Path, *, resume: bool = False) -> RunResult
     """Algorithm 1 without transfer (PILCO): learn the task of ``cfg`` in ``output_dir``."""
     # -- Check everything before any work: task, env, spaces, resume point. -----------------------
     dtype = DTYPES[cfg.dtype]
+    if cfg.device != "cpu":
+        raise ValueError(f"device={cfg.device!r}: this version of the loop runs on the CPU only (device=cpu)")
     task = Task.from_config(OmegaConf.to_container(cfg.task, resolve=True))
     checkpoint = load_checkpoint(latest_checkpoint(output_dir)) if resume else None
     seed_everything(cfg.seed)

@@ -92,6 +92,12 @@ def test_resume_from_missing_or_corrupt_directory_is_named(tmp_path):
         run(tiny_config("episodes=1"), tmp_path / "bad", resume=True)
 
 
+def test_unsupported_device_fails_before_any_work(tmp_path):
+    with pytest.raises(ValueError, match="runs on the CPU only"):
+        run(tiny_config("device=cuda"), tmp_path)
+    assert not (tmp_path / "metrics.csv").exists()
+
+
 @pytest.mark.parametrize(
     ("overrides", "message"),
     [
