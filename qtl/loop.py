@@ -75,7 +75,11 @@ def torch_generator(seed: int, episode: int, stream: int) -> torch.Generator:
 
 
 def run_episode(env: gymnasium.Env, task: Task, act: Callable[[np.ndarray], np.ndarray], seed: int) -> Episode:
-    """Apply ``act`` on the real system for at most H steps (Algorithm 1, lines 3 and 11)."""
+    """Apply ``act`` on the real system for at most H steps (Algorithm 1, lines 3 and 11).
+
+    Rewards are the task's saturating reward of each successor state: the env's own when it
+    exposes the same ``reward_spec``, else the configured ``task.reward`` of the observation.
+    """
     obs, _ = env.reset(seed=seed)
     states, actions, rewards = [obs], [], []
     for _ in range(task.horizon):
@@ -83,7 +87,7 @@ def run_episode(env: gymnasium.Env, task: Task, act: Callable[[np.ndarray], np.n
         obs, reward, terminated, truncated, _ = env.step(action.astype(env.action_space.dtype))
         states.append(obs)
         actions.append(action)
-        rewards.append(reward)
+        rewards.append(reward if task.reward_from_env else task.reward(obs))
         if terminated or truncated:
             break
     return Episode(np.asarray(states, dtype=float), np.asarray(actions, dtype=float), np.asarray(rewards, dtype=float))

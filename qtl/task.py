@@ -34,6 +34,7 @@ class Task:
     start_mean: np.ndarray  # `D`
     start_std: np.ndarray  # `D`
     reward: SaturatingReward
+    reward_from_env: bool  # the env's own reward is this one (else the env's is ignored)
     success_threshold: float
     success_steps: int
 
@@ -86,6 +87,7 @@ class Task:
             start_mean=start_mean,
             start_std=start_std,
             reward=reward,
+            reward_from_env=cfg.get("reward") is None,
             success_threshold=float(success["threshold"]),
             success_steps=int(success["last_steps"]),
         )

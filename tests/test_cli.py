@@ -58,3 +58,38 @@ def test_python_dash_m_qtl_reports_bad_input(tmp_path):
     assert missing.returncode != 0 and "does not exist" in missing.stderr
     changed = run_cli([sys.executable, "-m", "qtl", f"resume={tmp_path}", "seed=5"], cwd=tmp_path)
     assert changed.returncode != 0
+
+
+PENDULUM_TASK = """\
+name: pendulum
+env:
+  id: Pendulum-v1
+horizon: 6
+angle_dims: []
+policy_size: 4
+start:
+  mean: [1.0, 0.0, 0.0]
+  std: [0.05, 0.05, 0.1]
+reward:
+  angle_dims: []
+  target: [1.0, 0.0, 0.0]
+  weight: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 0.0]]
+  width: 0.5
+success:
+  threshold: 0.2
+  last_steps: 2
+"""
+
+
+def test_readme_recipe_own_task_from_a_search_path(tmp_path):
+    """The README's "add your own task": any Box env, start and reward in the task file."""
+    (tmp_path / "my_configs" / "task").mkdir(parents=True)
+    (tmp_path / "my_configs" / "task" / "pendulum.yaml").write_text(PENDULUM_TASK)
+    tiny = [a for a in TINY if not a.startswith("task.")]
+    done = run_cli([sys.executable, "-m", "qtl", "task=pendulum", "hydra.searchpath=[file://my_configs]", *tiny,
+                    f"hydra.run.dir={tmp_path / 'run'}"], cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    with open(tmp_path / "run" / "metrics.csv", newline="") as f:
+        returns = [float(r["return"]) for r in csv.DictReader(f)]
+    # The task's saturating reward (in [0, 1] per step), not Pendulum's own negative cost.
+    assert len(returns) == 2 and all(0.0 <= r <= 6.0 for r in returns)

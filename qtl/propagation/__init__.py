@@ -2,5 +2,6 @@
 
 from qtl.propagation.kernel_moments import SEKernelMoments, weighted_exp_sum
 from qtl.propagation.moment_matching import MomentMatching, Rollout
+from qtl.propagation.particles import Particles
 
-__all__ = ["MomentMatching", "Rollout", "SEKernelMoments", "weighted_exp_sum"]
+__all__ = ["MomentMatching", "Particles", "Rollout", "SEKernelMoments", "weighted_exp_sum"]

@@ -1,0 +1,290 @@
+"""Long-term prediction by particles: reparameterised samples through policy and GP (Eq. 4; MC-PILCO, PIPPS).
+
+P particles x_0 = μ_0 + L_0 ε_0 (L_0 L_0ᵀ = Σ_0) go through the map the real system goes
+through: the features y = φ(x) exactly per particle, the action u = π(y) (squashing included),
+then Δ drawn from the GP's predictive distribution at [y, u] by the reparameterisation trick,
+x_{t+1} = x_t + m(x_t) + √v(x_t) ∘ ε_{t+1}, with per output a the mean m_a = k_a β_a and the
+variance v_a = α_a² − k_a (K_a + σ_ε²I)⁻¹ k_aᵀ (+ σ_ε² with ``include_noise``) (Eq. 1-2). The
+expected return (Eq. 4) is the mean over particles of Σ_{t=1..H} r(x_t), differentiable in ψ.
+
+As in moment matching, the E outputs are independent and the GP function is drawn afresh at
+every step: there is no correlation of f across steps or particles.
+
+Variance control by common random numbers: the base noise, ε_0 `P x D` and ε_1..ε_H
+`H x P x E`, is a deterministic function of (``seed``, draw index). With ``resample_every = 0``
+the draw index never changes, so every evaluation in a policy search sees the same noise and
+the objective is a deterministic function of ψ (what L-BFGS needs). With ``resample_every = k``
+it advances every k calls of :meth:`Particles.expected_return`: fresh noise every k evaluations,
+for stochastic optimisers (Adam). The noise is shared across the batch dimensions of the start
+distribution and of stacked models, so a batched rollout equals the per-item rollouts.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import torch
+from torch import Tensor
+from torch.autograd.function import once_differentiable
+
+from qtl.features import AngleFeatures
+from qtl.gaussian import Gaussian, symmetrize
+from qtl.models.dynamics_gp import GPPosteriorCache
+from qtl.policy_search import NonFiniteObjective
+from qtl.propagation.moment_matching import Rollout, _stack_caches
+from qtl.rewards import ExpectedSaturatingReward
+
+if TYPE_CHECKING:
+    from qtl.policies.base import Policy
+
+# Fewest particles: the per-step covariance needs two.
+MIN_PARTICLES = 2
+# Predictive variances at or below this are propagated as exactly 0 (standard deviation 1e-15):
+# √v has an infinite derivative at 0, and its clamped form keeps the gradient finite.
+SQRT_VARIANCE_FLOOR = 1e-30
+# The base noise is drawn in this dtype and then converted to the propagation's.
+NOISE_DTYPE = torch.float64
+
+
+class _GPPredictive(torch.autograd.Function):
+    """Per-output GP mean k β and latent variance α² − k (K + σ_ε²I)⁻¹ kᵀ at points (Eq. 1-2).
+
+    ``z`` `... x E x P x D` are the points over ℓ_a, ``data`` `... x E x n x D` the training
+    inputs over ℓ_a, ``data_sq`` `... x E x n` their squared norms, ``beta`` `... x E x n`,
+    ``K_inv`` `... x E x n x n` (symmetric), ``signal_variance`` `... x E` (α²). Returns mean
+    and variance `... x E x P`. Backward keeps only k and k K⁻¹ (`... x E x P x n`) and needs
+    no `n x n` product: the gradient of the quadratic form k K⁻¹ kᵀ is 2 k K⁻¹. Gradients flow
+    to ``z`` only (the data are fixed during policy search).
+    """
+
+    @staticmethod
+    def forward(  # type: ignore[override]
+        ctx, z: Tensor, data: Tensor, data_sq: Tensor, beta: Tensor, K_inv: Tensor, signal_variance: Tensor
+    ) -> tuple[Tensor, Tensor]:
+        # log k = log α² − ½‖z − d‖², formed in place; ‖z − d‖² >= 0 up to round-off.
+        log_kern = torch.matmul(z, data.mT)  # ... x E x P x n
+        log_kern.sub_(0.5 * z.square().sum(-1, keepdim=True)).sub_(0.5 * data_sq[..., None, :])
+        kern = log_kern.clamp_max_(0.0).add_(signal_variance.log()[..., None, None]).exp_()
+        mean = (kern @ beta[..., None]).squeeze(-1)
+        kern_a = kern @ K_inv
+        var = signal_variance[..., None] - torch.linalg.vecdot(kern_a, kern)
+        ctx.save_for_backward(z, data, beta, kern, kern_a)
+        return mean, var
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad_mean: Tensor, grad_var: Tensor) -> tuple[Tensor | None, ...]:  # type: ignore[override]
+        z, data, beta, kern, kern_a = ctx.saved_tensors
+        # ∂V/∂k = β g_m − 2 k K⁻¹ g_v; times ∂k/∂(z·d) = k; ‖z‖²'s share gives −z Σ_n (·).
+        grad_log = kern_a.mul(-2.0 * grad_var[..., None]).addcmul_(grad_mean[..., None], beta[..., None, :])
+        grad_log.mul_(kern)  # ∂/∂ log k
+        grad_z = grad_log @ data - z * grad_log.sum(-1, keepdim=True)
+        return grad_z, None, None, None, None, None
+
+
+def _safe_sqrt(var: Tensor) -> Tensor:
+    """√v elementwise for v >= 0, exactly 0 with a zero (not NaN) gradient where v <= the floor."""
+    positive = var > SQRT_VARIANCE_FLOOR
+    return torch.where(positive, var.clamp_min(SQRT_VARIANCE_FLOOR).sqrt(), torch.zeros_like(var))
+
+
+def _root(cov: Tensor) -> Tensor:
+    """L with L Lᵀ = Σ for `... x D x D`: Cholesky, or the symmetric root of a singular (PSD) Σ."""
+    chol, info = torch.linalg.cholesky_ex(cov)
+    if bool((info == 0).all()):
+        return chol
+    eigval, eigvec = torch.linalg.eigh(symmetrize(cov))
+    return eigvec * eigval.clamp_min(0.0).sqrt()[..., None, :]
+
+
+def _particle_moments(x: Tensor) -> Gaussian:
+    """Sample mean and unbiased covariance over particles: `... x P x T x D` → `... x T x D (x D)`."""
+    mean = x.mean(-3)
+    centred = x - mean[..., None, :, :]
+    cov = torch.einsum("...ptd,...pte->...tde", centred, centred) / (x.shape[-3] - 1)
+    return Gaussian(mean, symmetrize(cov))
+
+
+def _draw_seed(seed: int, draw: int) -> int:
+    """A 32-bit seed for the base noise of one draw."""
+    return int(np.random.SeedSequence([seed, draw]).generate_state(1)[0])
+
+
+def _cache_tensors(model: GPPosteriorCache | Sequence[GPPosteriorCache] | Any) -> dict[str, Tensor]:
+    """The posterior-cache tensors of a model, a cache, or a stack of caches of equal sizes."""
+    if hasattr(model, "posterior_cache"):
+        model = model.posterior_cache()
+    if not isinstance(model, GPPosteriorCache):
+        return _stack_caches(list(model))
+    theta = model.hyperparameters
+    return {
+        "inputs": model.inputs,
+        "K_inv": model.K_inv,
+        "beta": model.beta,
+        "lengthscales": theta.lengthscales,
+        "signal_variance": theta.signal_variance,
+        "noise_variance": theta.noise_variance,
+    }
+
+
+class Particles:
+    """Propagates P reparameterised particles through a policy and a GP dynamics model (Eq. 4).
+
+    The same interface as :class:`~qtl.propagation.MomentMatching`: ``model`` is a
+    :class:`~qtl.models.GPPosteriorCache` (or anything with ``posterior_cache()``), or a sequence
+    of caches of equal sizes stacked as a leading batch dimension `M` that broadcasts against
+    the batch of the start distribution; ``policy`` acts on the features φ(x) (plain tensors,
+    squashing included); ``reward`` scores the successor states per particle; ``angle_dims``:
+    the dynamics' angle dimensions. ``num_particles``: P. ``resample_every``: fresh base noise
+    every this many calls of :meth:`expected_return` (0: never — a deterministic objective).
+    ``include_noise``: add σ_ε² to the predictive variance of Δ (default; without it Δ is drawn
+    from the latent GP, as :class:`~qtl.propagation.MomentMatching` does by default). ``seed``:
+    of the base noise. ``dtype``: of the propagation (default: the cache's); the policy must
+    share it.
+    """
+
+    def __init__(
+        self,
+        model: GPPosteriorCache | Sequence[GPPosteriorCache] | Any,
+        policy: Policy,
+        reward: ExpectedSaturatingReward,
+        *,
+        angle_dims: Sequence[int] = (),
+        num_particles: int = 400,
+        resample_every: int = 0,
+        include_noise: bool = True,
+        seed: int = 0,
+        dtype: torch.dtype | None = None,
+    ) -> None:
+        if num_particles < MIN_PARTICLES:
+            raise ValueError(f"num_particles must be >= {MIN_PARTICLES}, got {num_particles}")
+        if resample_every < 0:
+            raise ValueError(f"resample_every must be >= 0 (0: never resample), got {resample_every}")
+        if seed < 0:
+            raise ValueError(f"seed must be >= 0, got {seed}")
+        data = _cache_tensors(model)
+        self.dtype = dtype or data["inputs"].dtype
+        data = {k: v.detach().to(self.dtype) for k, v in data.items()}
+
+        state_dim = data["beta"].shape[-2]
+        self.state_dim = state_dim
+        self.features = AngleFeatures(state_dim, angle_dims)
+        gp_input_dim = data["inputs"].shape[-1]
+        if gp_input_dim != self.features.output_dim + policy.output_dim:
+            raise ValueError(
+                f"GP input dimension {gp_input_dim} != features ({self.features.output_dim}) + "
+                f"actions ({policy.output_dim})"
+            )
+        if policy.input_dim != self.features.output_dim:
+            raise ValueError(f"policy takes {policy.input_dim} inputs, the features have {self.features.output_dim}")
+        if reward.state_dim != state_dim:
+            raise ValueError(f"reward is for {reward.state_dim}-D states, the GP predicts {state_dim}-D")
+        self.policy = policy
+        self.reward = reward
+        self.num_particles = int(num_particles)
+        self.resample_every = int(resample_every)
+        self.include_noise = include_noise
+        self.seed = int(seed)
+        self.calls = 0  # evaluations of expected_return so far: they set the draw index
+        self._noise: tuple[tuple[int, int], tuple[Tensor, Tensor]] | None = None
+
+        # Everything that depends only on data and θ is computed here, once.
+        self.model_batch_shape = data["beta"].shape[:-2]
+        inv_ls = data["lengthscales"].reciprocal()  # ... x E x D_in
+        self._inv_lengthscales = inv_ls[..., :, None, :]  # ... x E x 1 x D_in
+        self._data = data["inputs"][..., None, :, :] * self._inv_lengthscales  # ... x E x n x D_in
+        self._data_sq = self._data.square().sum(-1)  # ... x E x n
+        self._beta = data["beta"]
+        self._K_inv = data["K_inv"]
+        self._signal_variance = data["signal_variance"]
+        self._noise_variance = data["noise_variance"]  # ... x E
+
+    # -- common random numbers ------------------------------------------------------------------
+
+    def draw_index(self, *, evaluation: int | None = None) -> int:
+        """The draw of base noise that evaluation number ``evaluation`` (default: the latest) uses."""
+        if evaluation is None:
+            evaluation = max(self.calls - 1, 0)
+        return evaluation // self.resample_every if self.resample_every else 0
+
+    def base_noise(self, horizon: int, draw: int | None = None) -> tuple[Tensor, Tensor]:
+        """ε_0 `P x D` (start) and ε_1..ε_H `H x P x E` (steps) of one draw (default: the latest)."""
+        draw = self.draw_index() if draw is None else draw
+        key = (draw, horizon)
+        if self._noise is None or self._noise[0] != key:
+            gen = torch.Generator().manual_seed(_draw_seed(self.seed, draw))
+            shape = (self.num_particles, self.state_dim)
+            # Drawn in float64 whatever the dtype, so that every dtype sees the same numbers; one
+            # draw per step, in order, so that the noise of step t does not depend on the horizon.
+            start = torch.randn(shape, generator=gen, dtype=NOISE_DTYPE)
+            steps = torch.stack([torch.randn(shape, generator=gen, dtype=NOISE_DTYPE) for _ in range(horizon)])
+            like = {"device": self._beta.device, "dtype": self.dtype}
+            self._noise = (key, (start.to(**like), steps.to(**like)))
+        return self._noise[1]
+
+    # -- propagation ----------------------------------------------------------------------------
+
+    def trajectories(self, start: Gaussian, horizon: int, draw: int | None = None) -> tuple[Tensor, Tensor]:
+        """Particle paths from N(μ_0, Σ_0): states `... x P x (H+1) x D` (x_0..x_H), actions `... x P x H x F`.
+
+        ``draw``: the base noise to use (default: that of the latest evaluation).
+        """
+        if start.dim != self.state_dim:
+            raise ValueError(f"start must be a {self.state_dim}-D distribution, got {start.dim}-D")
+        if horizon < 1:
+            raise ValueError(f"horizon must be >= 1, got {horizon}")
+        start = start.to(dtype=self.dtype)
+        start_noise, step_noise = self.base_noise(horizon, draw)
+        batch = torch.broadcast_shapes(start.batch_shape, self.model_batch_shape)
+        x = start.mean[..., None, :] + start_noise @ _root(start.cov).mT  # x_0 = μ_0 + L_0 ε_0
+        x = x.expand(*batch, self.num_particles, self.state_dim)
+        states, actions = [x], []
+        for t in range(horizon):
+            y = self.features(x)  # ... x P x (D + K), exact per particle
+            u = self.policy(y)  # ... x P x F
+            z = torch.cat([y, u], dim=-1)[..., None, :, :] * self._inv_lengthscales  # ... x E x P x D_in
+            mean, var = _GPPredictive.apply(z, self._data, self._data_sq, self._beta, self._K_inv,
+                                            self._signal_variance)  # ... x E x P (Eq. 1-2)
+            var = var.clamp_min(0.0)  # round-off can make the latent variance slightly negative
+            if self.include_noise:
+                var = var + self._noise_variance[..., None]
+            delta = mean + _safe_sqrt(var) * step_noise[t].mT  # Δ ~ N(m, v) reparameterised
+            x = x + delta.mT
+            states.append(x)
+            actions.append(u)
+        return torch.stack(states, dim=-2), torch.stack(actions, dim=-2)
+
+    def rollout(self, start: Gaussian, horizon: int, draw: int | None = None) -> Rollout:
+        """H steps from N(μ_0, Σ_0); V = mean over particles of Σ_{t=1..H} r(x_t) (Eq. 4).
+
+        ``states`` and ``actions`` are the particles' per-step sample means and (unbiased)
+        covariances. Uses the base noise of the latest evaluation unless ``draw`` is given, and
+        does not count as an evaluation. A non-finite V raises
+        :class:`~qtl.policy_search.NonFiniteObjective`.
+        """
+        states, actions = self.trajectories(start, horizon, draw)
+        per_particle = self.reward(states[..., 1:, :])  # ... x P x H, successor states x_1..x_H
+        value = per_particle.sum(-1).mean(-1)
+        if not torch.isfinite(value).all():
+            finite = torch.isfinite(states).all(-1).flatten(end_dim=-2).all(0)  # H+1
+            first = int((~finite).nonzero()[0, 0]) if not finite.all() else None
+            bad = int((~torch.isfinite(per_particle.sum(-1))).sum())
+            raise NonFiniteObjective(
+                f"particle rollout: expected return {value.detach().flatten().tolist()} is not finite; "
+                f"{bad} of {per_particle[..., 0].numel()} particle returns are not finite"
+                + (f", the first non-finite state at step {first}" if first is not None else "")
+            )
+        return Rollout(
+            value=value,
+            rewards=per_particle.mean(-2),
+            states=_particle_moments(states),
+            actions=_particle_moments(actions),
+        )
+
+    def expected_return(self, start: Gaussian, horizon: int) -> Tensor:
+        """V^π(x_0) ≈ (1/P) Σ_p Σ_{t=1..H} r(x_t^p) (Eq. 4): `...`, differentiable in ψ; counts one evaluation."""
+        draw = self.draw_index(evaluation=self.calls)
+        self.calls += 1
+        return self.rollout(start, horizon, draw).value

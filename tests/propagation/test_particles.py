@@ -1,0 +1,309 @@
+"""Particles: one step against moment matching, exact per-particle dynamics, common random numbers, guards."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+import torch
+from hydra import compose, initialize_config_module
+from hydra.utils import instantiate
+
+from envs.rewards import SaturatingReward
+from qtl.config import register_configs
+from qtl.features import AngleFeatures
+from qtl.gaussian import Gaussian
+from qtl.policies import LinearPolicy, RBFPolicy, SquashedPolicy
+from qtl.policy_search import NonFiniteObjective
+from qtl.propagation import MomentMatching, Particles
+from qtl.propagation.particles import _safe_sqrt
+from qtl.rewards import ExpectedSaturatingReward
+
+DTYPE = torch.float64
+# Enough particles that the Monte Carlo standard error of one step is small against the
+# moments; the acceptance rule is the shared one (conftest `mc`: within 5 standard errors,
+# each estimated from the per-particle terms as std/√P).
+MANY_PARTICLES = 100_000
+# Where moment matching is an approximation (angles, a squashed RBF policy): mean error in units
+# of the particles' standard deviation, and the ratio of predicted to particle standard deviation.
+APPROX_MEAN_TOL = 0.15
+APPROX_STD_RATIO = (0.75, 1.25)
+# Agreement of particles with an independent per-particle reference using the same noise.
+EXACT_RTOL, EXACT_ATOL = 1e-9, 1e-12
+
+
+def quadratic_reward(state_dim: int, angle_dims=(), width: float = 1.5) -> ExpectedSaturatingReward:
+    """A saturating reward around the origin on all augmented coordinates."""
+    aug = state_dim + len(angle_dims)
+    target = np.zeros(aug)
+    for k, _ in enumerate(angle_dims):
+        target[state_dim - len(angle_dims) + 2 * k + 1] = 1.0  # cos θ = 1 at θ = 0
+    spec = SaturatingReward(
+        state_dim=state_dim,
+        angle_dims=tuple(angle_dims),
+        target=tuple(target),
+        weight=tuple(map(tuple, np.eye(aug))),
+        width=width,
+    )
+    return ExpectedSaturatingReward.from_spec(spec)
+
+
+def linear_parts(gp_factory):
+    """No angles, a linear policy: moment matching is exact for one step."""
+    gp = gp_factory(40, 2, 1, seed=21)
+    policy = LinearPolicy(2, 1, weight=torch.tensor([[0.8, -0.5]], dtype=DTYPE), bias=torch.tensor([0.2], dtype=DTYPE))
+    return gp, policy, quadratic_reward(2)
+
+
+def pendulum_parts(gp_factory, num_basis: int = 8):
+    """A 3-D state with an angle, a squashed RBF policy: PILCO's full configuration."""
+    gp = gp_factory(40, 3, 1, (1,), seed=22)
+    gen = torch.Generator().manual_seed(23)
+    policy = SquashedPolicy(
+        RBFPolicy(4, 1, num_basis, targets=torch.randn(num_basis, 1, generator=gen, dtype=DTYPE), generator=gen), 2.0
+    )
+    return gp, policy, quadratic_reward(3, (1,))
+
+
+@pytest.mark.parametrize("include_noise", [False, True])
+def test_one_step_converges_to_exact_moment_matching(gp_factory, mc, include_noise):
+    # No angles and a linear policy: [x, u] is Gaussian and moment matching's step is exact,
+    # so the particle moments must agree with it within their Monte Carlo standard error.
+    gp, policy, reward = linear_parts(gp_factory)
+    start = Gaussian(torch.tensor([0.3, -0.4], dtype=DTYPE), torch.tensor([[0.3, 0.1], [0.1, 0.2]], dtype=DTYPE))
+    particles = Particles(gp, policy, reward, num_particles=MANY_PARTICLES, include_noise=include_noise, seed=7)
+    with torch.no_grad():
+        exact, action = MomentMatching(gp, policy, reward, include_noise=include_noise).step(start)
+        states, actions = particles.trajectories(start, 1)
+    x1, u0 = states[:, 1], actions[:, 0]
+    mc.assert_mean(exact.mean, x1, "next mean")
+    centred = x1 - x1.mean(0)
+    mc.assert_mean(exact.cov, centred[:, :, None] * centred[:, None, :], "next cov")
+    mc.assert_mean(action.mean, u0, "action mean")
+
+
+def test_one_step_close_to_moment_matching_with_angles(gp_factory):
+    # Angles and a squashed RBF policy: moment matching approximates, particles sample exactly.
+    gp, policy, reward = pendulum_parts(gp_factory)
+    start = Gaussian(torch.tensor([0.2, 0.5, -0.1], dtype=DTYPE), 0.1 * torch.eye(3, dtype=DTYPE))
+    with torch.no_grad():
+        approx, _ = MomentMatching(gp, policy, reward, angle_dims=(1,)).step(start)
+        states, _ = Particles(
+            gp, policy, reward, angle_dims=(1,), num_particles=MANY_PARTICLES, include_noise=False
+        ).trajectories(start, 1)
+    x1 = states[:, 1]
+    std = x1.std(0)
+    assert ((approx.mean - x1.mean(0)).abs() <= APPROX_MEAN_TOL * std).all(), (approx.mean, x1.mean(0))
+    ratio = approx.cov.diagonal().sqrt() / std
+    assert ((ratio >= APPROX_STD_RATIO[0]) & (ratio <= APPROX_STD_RATIO[1])).all(), ratio
+
+
+@pytest.mark.parametrize("include_noise", [False, True])
+def test_particles_follow_the_gp_posterior_exactly(gp_factory, posterior, include_noise):
+    # An independent per-particle reference (the conftest GP posterior, checked against GPyTorch)
+    # with the propagator's own base noise gives the same paths to round-off.
+    gp, policy, reward = pendulum_parts(gp_factory)
+    particles = Particles(gp, policy, reward, angle_dims=(1,), num_particles=16, include_noise=include_noise, seed=3)
+    start_std = torch.tensor([0.2, 0.45, 0.3], dtype=DTYPE)
+    start = Gaussian(torch.tensor([0.1, 2.5, -0.3], dtype=DTYPE), torch.diag(start_std.square()))
+    horizon = 4
+    with torch.no_grad():
+        states, actions = particles.trajectories(start, horizon)
+        start_noise, step_noise = particles.base_noise(horizon)
+        cache = gp.posterior_cache()
+        features = AngleFeatures(3, (1,))
+        x = start.mean + start_noise @ torch.linalg.cholesky(start.cov).mT
+        expected = [x]
+        for t in range(horizon):
+            u = policy(features(x))
+            torch.testing.assert_close(actions[:, t], u, rtol=EXACT_RTOL, atol=EXACT_ATOL)
+            mean, var = posterior(cache, torch.cat([features(x), u], dim=-1))
+            var = var.clamp_min(0.0) + (cache.hyperparameters.noise_variance if include_noise else 0.0)
+            x = x + mean + var.sqrt() * step_noise[t]
+            expected.append(x)
+    torch.testing.assert_close(states, torch.stack(expected, dim=1), rtol=EXACT_RTOL, atol=EXACT_ATOL)
+
+
+def test_rollout_structure(gp_factory):
+    gp, policy, reward = pendulum_parts(gp_factory)
+    particles = Particles(gp, policy, reward, angle_dims=(1,), num_particles=50)
+    start = Gaussian(torch.zeros(3, dtype=DTYPE), 0.01 * torch.eye(3, dtype=DTYPE))
+    rollout = particles.rollout(start, 4)
+    assert rollout.states.mean.shape == (5, 3) and rollout.states.cov.shape == (5, 3, 3)
+    assert rollout.actions.mean.shape == (4, 1) and rollout.actions.cov.shape == (4, 1, 1)
+    assert rollout.rewards.shape == (4,) and rollout.value.shape == ()
+    torch.testing.assert_close(rollout.value, rollout.rewards.sum())
+    states, _ = particles.trajectories(start, 4)
+    # Successor states x_1..x_H are scored (as PILCO), x_0 is not.
+    torch.testing.assert_close(rollout.rewards[0], reward(states[:, 1]).mean())
+    torch.testing.assert_close(rollout.states.mean[0], states[:, 0].mean(0))
+    torch.testing.assert_close(rollout.states.cov[2], torch.cov(states[:, 2].T))
+    torch.testing.assert_close(particles.expected_return(start, 4), rollout.value)
+
+
+def test_common_random_numbers_and_seeds(gp_factory):
+    gp, policy, reward = pendulum_parts(gp_factory)
+    start = Gaussian(torch.zeros(3, dtype=DTYPE), 0.05 * torch.eye(3, dtype=DTYPE))
+
+    def objective(**kwargs):
+        return Particles(gp, policy, reward, angle_dims=(1,), num_particles=30, **kwargs)
+
+    same = objective(seed=4)
+    first = same.expected_return(start, 5)
+    assert torch.equal(first, same.expected_return(start, 5))  # CRN: a deterministic objective
+    assert torch.equal(first, objective(seed=4).expected_return(start, 5))
+    assert not torch.equal(first, objective(seed=5).expected_return(start, 5))
+    # The noise of a step does not depend on the horizon asked for.
+    torch.testing.assert_close(same.base_noise(3)[1], same.base_noise(5)[1][:3], rtol=0, atol=0)
+
+
+def test_gradients_reach_the_policy_and_are_finite(gp_factory):
+    gp, policy, reward = pendulum_parts(gp_factory)
+    particles = Particles(gp, policy, reward, angle_dims=(1,), num_particles=40, include_noise=False)
+    policy.zero_grad()
+    particles.expected_return(Gaussian(torch.zeros(3, dtype=DTYPE), 0.01 * torch.eye(3, dtype=DTYPE)), 10).backward()
+    grads = [p.grad for p in policy.parameters()]
+    assert all(g is not None and torch.isfinite(g).all() and g.abs().sum() > 0 for g in grads)
+    policy.zero_grad()
+
+
+def test_gradcheck_two_step_rollout_wrt_policy_and_start(gp_factory):
+    gp = gp_factory(8, 2, 1, (1,), seed=41)
+    policy = SquashedPolicy(RBFPolicy(3, 1, 3, generator=torch.Generator().manual_seed(2)), 1.0)
+    particles = Particles(gp, policy, quadratic_reward(2, (1,)), angle_dims=(1,), num_particles=3, seed=1)
+    start = Gaussian(torch.tensor([0.1, 0.4], dtype=DTYPE), 0.05 * torch.eye(2, dtype=DTYPE))
+    names = [name for name, _ in policy.named_parameters()]
+    psi = tuple(p.detach().clone().requires_grad_() for p in policy.parameters())
+
+    class Value(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.policy = policy
+
+        def forward(self, mean):
+            return particles.rollout(Gaussian(mean, start.cov), 2).value  # fixed noise: draw 0
+
+    def value(mean, *params):
+        swapped = {f"policy.{n}": p for n, p in zip(names, params, strict=True)}
+        return torch.func.functional_call(Value(), swapped, (mean,))
+
+    assert torch.autograd.gradcheck(value, (start.mean.clone().requires_grad_(), *psi))
+
+
+@pytest.mark.parametrize("every", [1, 2, 3])
+def test_resample_every_k_calls(gp_factory, every):
+    gp, policy, reward = linear_parts(gp_factory)
+    particles = Particles(gp, policy, reward, num_particles=10, resample_every=every, seed=2)
+    start = Gaussian(torch.zeros(2, dtype=DTYPE), 0.1 * torch.eye(2, dtype=DTYPE))
+    calls = 3 * every
+    values = [particles.expected_return(start, 3).detach() for _ in range(calls)]
+    draws = [particles.draw_index(evaluation=i) for i in range(calls)]
+    assert draws == [i // every for i in range(calls)]
+    for i, j in itertools.combinations(range(calls), 2):
+        assert torch.equal(values[i], values[j]) == (draws[i] == draws[j]), (i, j, every)
+    # rollout() shows the noise of the latest evaluation and does not count as one.
+    torch.testing.assert_close(particles.rollout(start, 3).value, values[-1], rtol=0, atol=0)
+    assert particles.calls == calls
+
+
+def test_never_resamples_by_default(gp_factory):
+    gp, policy, reward = linear_parts(gp_factory)
+    particles = Particles(gp, policy, reward, num_particles=10)
+    start = Gaussian(torch.zeros(2, dtype=DTYPE), 0.1 * torch.eye(2, dtype=DTYPE))
+    values = {float(particles.expected_return(start, 3).detach()) for _ in range(4)}
+    assert len(values) == 1 and particles.draw_index() == 0
+
+
+def test_non_finite_return_raises(gp_factory):
+    gp, _, reward = linear_parts(gp_factory)
+    policy = LinearPolicy(2, 1, bias=torch.tensor([float("nan")], dtype=DTYPE))
+    particles = Particles(gp, policy, reward, num_particles=10)
+    with pytest.raises(NonFiniteObjective, match=r"not finite.*step 1"):
+        particles.expected_return(Gaussian(torch.zeros(2, dtype=DTYPE), 0.1 * torch.eye(2, dtype=DTYPE)), 3)
+
+
+def test_safe_sqrt_clamps_with_a_finite_gradient():
+    var = torch.tensor([-1e-12, 0.0, 1e-40, 4.0], dtype=DTYPE, requires_grad=True)
+    root = _safe_sqrt(var.clamp_min(0.0))
+    root.sum().backward()
+    torch.testing.assert_close(root.detach(), torch.tensor([0.0, 0.0, 0.0, 2.0], dtype=DTYPE))
+    torch.testing.assert_close(var.grad, torch.tensor([0.0, 0.0, 0.0, 0.25], dtype=DTYPE))
+
+
+def test_singular_start_covariance(gp_factory):
+    gp, policy, reward = linear_parts(gp_factory)
+    particles = Particles(gp, policy, reward, num_particles=20)
+    start = Gaussian(torch.tensor([0.1, 0.2], dtype=DTYPE), torch.diag(torch.tensor([0.1, 0.0], dtype=DTYPE)))
+    states, _ = particles.trajectories(start, 2)
+    torch.testing.assert_close(states[:, 0, 1], torch.full((20,), 0.2, dtype=DTYPE))
+
+
+def test_batched_starts_equal_per_item(gp_factory, cov_factory):
+    gp, policy, reward = pendulum_parts(gp_factory)
+    particles = Particles(gp, policy, reward, angle_dims=(1,), num_particles=20)
+    gen = torch.Generator().manual_seed(3)
+    means = 0.3 * torch.randn(3, 3, generator=gen, dtype=DTYPE)
+    covs = cov_factory(3, 0.3, gen, batch=(3,))
+    batched = particles.rollout(Gaussian(means, covs), 4)
+    assert batched.value.shape == (3,) and batched.states.mean.shape == (3, 5, 3)
+    for i in range(3):
+        single = particles.rollout(Gaussian(means[i], covs[i]), 4)
+        torch.testing.assert_close(batched.value[i], single.value)
+        torch.testing.assert_close(batched.states.cov[i], single.states.cov)
+
+
+def test_stacked_models_equal_per_model(gp_factory, cov_factory):
+    gps = [gp_factory(30, 3, 1, (1,), seed=s) for s in (31, 32)]
+    policy = SquashedPolicy(RBFPolicy(4, 1, 5, generator=torch.Generator().manual_seed(1)), 1.5)
+    reward = quadratic_reward(3, (1,))
+    stacked = Particles([g.posterior_cache() for g in gps], policy, reward, angle_dims=(1,), num_particles=20)
+    gen = torch.Generator().manual_seed(4)
+    means = 0.3 * torch.randn(2, 1, 3, generator=gen, dtype=DTYPE)  # 2 starts x 2 models
+    covs = cov_factory(3, 0.3, gen, batch=(2, 1))
+    batched = stacked.rollout(Gaussian(means, covs), 4)
+    assert batched.value.shape == (2, 2)
+    for i, j in itertools.product(range(2), range(2)):
+        single = Particles(gps[j], policy, reward, angle_dims=(1,), num_particles=20)
+        expected = single.rollout(Gaussian(means[i, 0], covs[i, 0]), 4)
+        torch.testing.assert_close(batched.value[i, j], expected.value)
+        torch.testing.assert_close(batched.states.cov[i, j], expected.states.cov)
+
+
+def test_rejects_bad_settings_and_mismatched_parts(gp_factory):
+    gp = gp_factory(10, 2, 1, (1,), seed=5)
+    policy = LinearPolicy(3, 1)
+    reward = quadratic_reward(2, (1,))
+    with pytest.raises(ValueError, match="num_particles"):
+        Particles(gp, policy, reward, angle_dims=(1,), num_particles=1)
+    with pytest.raises(ValueError, match="resample_every"):
+        Particles(gp, policy, reward, angle_dims=(1,), resample_every=-1)
+    with pytest.raises(ValueError, match="GP input"):
+        Particles(gp, policy, reward, angle_dims=())
+    with pytest.raises(ValueError, match="reward"):
+        Particles(gp, policy, quadratic_reward(3), angle_dims=(1,))
+    particles = Particles(gp, policy, reward, angle_dims=(1,), num_particles=4)
+    with pytest.raises(ValueError, match="2-D"):
+        particles.rollout(Gaussian(torch.zeros(3, dtype=DTYPE), torch.eye(3, dtype=DTYPE)), 3)
+    with pytest.raises(ValueError, match="horizon"):
+        particles.rollout(Gaussian(torch.zeros(2, dtype=DTYPE), torch.eye(2, dtype=DTYPE)), 0)
+
+
+def test_config_builds_particles_seeded_by_the_run(gp_factory):
+    register_configs()
+    with initialize_config_module(config_module="qtl.configs", version_base="1.3"):
+        cfg = compose(config_name="train", overrides=["propagation=particles", "seed=11"])
+    gp, policy, reward = pendulum_parts(gp_factory)
+    built = instantiate(cfg.propagation)(gp, policy, reward, angle_dims=(1,))
+    assert isinstance(built, Particles)
+    assert (built.seed, built.num_particles, built.resample_every, built.include_noise) == (11, 400, 0, True)
+
+
+def test_float32_propagation_agrees_with_float64(gp_factory):
+    gp, policy, reward = pendulum_parts(gp_factory)
+    start = Gaussian(torch.zeros(3, dtype=DTYPE), 0.05 * torch.eye(3, dtype=DTYPE))
+    reference = Particles(gp, policy, reward, angle_dims=(1,), num_particles=30).rollout(start, 5)
+    single = Particles(gp, policy.to(torch.float32), reward, angle_dims=(1,), num_particles=30, dtype=torch.float32)
+    rollout = single.rollout(start, 5)
+    assert rollout.value.dtype == torch.float32
+    torch.testing.assert_close(rollout.value.double(), reference.value, rtol=1e-4, atol=1e-5)

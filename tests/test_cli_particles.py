@@ -1,0 +1,43 @@
+"""``python -m qtl propagation=particles`` end to end on a tiny budget."""
+
+from __future__ import annotations
+
+import csv
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+# tests/test_cli.py's TINY budget, with Adam (suited to particle objectives) for L-BFGS.
+TINY_PARTICLES = [
+    "episodes=1",
+    "task.env.horizon=6",
+    "task.success.last_steps=2",
+    "task.policy_size=4",
+    "optimizer=adam",
+    "optimizer.steps=3",
+    "optimizer.restarts=1",
+    "model.restarts=1",
+    "model.max_iter=3",
+    "threads=1",
+    "propagation=particles",
+    "propagation.num_particles=20",
+]
+
+
+def test_cli_trains_with_particle_rollouts(tmp_path: Path):
+    run_dir = tmp_path / "run"
+    done = subprocess.run(
+        [sys.executable, "-m", "qtl", *TINY_PARTICLES, f"hydra.run.dir={run_dir}"],
+        cwd=tmp_path, capture_output=True, text=True, timeout=300,
+    )
+    assert done.returncode == 0, done.stderr
+    config = (run_dir / ".hydra" / "config.yaml").read_text()
+    assert "qtl.propagation.Particles" in config
+    with open(run_dir / "metrics.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert [r["kind"] for r in rows] == ["random", "policy"]
+    learned = rows[1]
+    assert math.isfinite(float(learned["predicted_return"]))
+    assert int(learned["policy_evaluations"]) == 3
+    assert len(list((run_dir / "checkpoints").glob("episode_*.pt"))) == 2
