@@ -25,6 +25,7 @@ from qtl.data import TransitionDataset
 from qtl.features import AngleFeatures
 from qtl.models import DynamicsGP
 from qtl.policies import Policy, SquashedPolicy
+from qtl.policy_search import NonFiniteObjective
 from qtl.recorder import BASE_COLUMNS, RunRecorder, theta_columns, theta_row, trajectory_figure
 from qtl.rewards import ExpectedSaturatingReward
 from qtl.seeding import seed_everything
@@ -274,8 +275,12 @@ def _log_evidence(model: DynamicsGP) -> float:
 
 def _prediction_figure(propagator: Any, start: Any, task: Task, real: Episode, episode: int) -> Any:
     """Predicted state distribution of the final policy against what the real system did."""
-    with torch.no_grad():
-        predicted = propagator.rollout(start, task.horizon).states  # (H+1) x D
+    try:
+        with torch.no_grad():
+            predicted = propagator.rollout(start, task.horizon).states  # (H+1) x D
+    except (NonFiniteObjective, torch.linalg.LinAlgError) as err:
+        log.warning("no prediction figure for episode %d: the predicted rollout broke down (%s)", episode, err)
+        return None
     mean = predicted.mean.numpy()
     std = torch.diagonal(predicted.cov, dim1=-2, dim2=-1).clamp_min(0).sqrt().numpy()
     return trajectory_figure(mean, std, real.states, f"episode {episode}: predicted vs real")

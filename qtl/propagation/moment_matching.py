@@ -25,6 +25,7 @@ from torch import Tensor
 from qtl.features import AngleFeatures
 from qtl.gaussian import Gaussian, GaussianMap, MomentMatch, symmetrize
 from qtl.models.dynamics_gp import GPPosteriorCache
+from qtl.propagation.gp_cache import cache_tensors
 from qtl.propagation.kernel_moments import SEKernelMoments
 from qtl.rewards import ExpectedSaturatingReward
 
@@ -45,21 +46,6 @@ class Rollout:
     rewards: Tensor
     states: Gaussian
     actions: Gaussian
-
-
-def _stack_caches(caches: Sequence[GPPosteriorCache]) -> dict[str, Tensor]:
-    """The tensors of several posterior caches of equal sizes, stacked on a leading dimension."""
-    shapes = {(c.inputs.shape, c.K_inv.shape) for c in caches}
-    if len(shapes) != 1:
-        raise ValueError(f"stacked GP caches must share n, D and E; got shapes {sorted(shapes)}")
-    return {
-        "inputs": torch.stack([c.inputs for c in caches]),
-        "K_inv": torch.stack([c.K_inv for c in caches]),
-        "beta": torch.stack([c.beta for c in caches]),
-        "lengthscales": torch.stack([c.hyperparameters.lengthscales for c in caches]),
-        "signal_variance": torch.stack([c.hyperparameters.signal_variance for c in caches]),
-        "noise_variance": torch.stack([c.hyperparameters.noise_variance for c in caches]),
-    }
 
 
 class MomentMatching:
@@ -85,20 +71,7 @@ class MomentMatching:
         include_noise: bool = False,
         dtype: torch.dtype | None = None,
     ) -> None:
-        if hasattr(model, "posterior_cache"):
-            model = model.posterior_cache()
-        if isinstance(model, GPPosteriorCache):
-            theta = model.hyperparameters
-            data = {
-                "inputs": model.inputs,
-                "K_inv": model.K_inv,
-                "beta": model.beta,
-                "lengthscales": theta.lengthscales,
-                "signal_variance": theta.signal_variance,
-                "noise_variance": theta.noise_variance,
-            }
-        else:
-            data = _stack_caches(list(model))
+        data = cache_tensors(model)
         self.dtype = dtype or data["inputs"].dtype
         data = {k: v.detach().to(self.dtype) for k, v in data.items()}
 

@@ -33,7 +33,8 @@ from qtl.features import AngleFeatures
 from qtl.gaussian import Gaussian, symmetrize
 from qtl.models.dynamics_gp import GPPosteriorCache
 from qtl.policy_search import NonFiniteObjective
-from qtl.propagation.moment_matching import Rollout, _stack_caches
+from qtl.propagation.gp_cache import cache_tensors
+from qtl.propagation.moment_matching import Rollout
 from qtl.rewards import ExpectedSaturatingReward
 
 if TYPE_CHECKING:
@@ -112,23 +113,6 @@ def _draw_seed(seed: int, draw: int) -> int:
     return int(np.random.SeedSequence([seed, draw]).generate_state(1)[0])
 
 
-def _cache_tensors(model: GPPosteriorCache | Sequence[GPPosteriorCache] | Any) -> dict[str, Tensor]:
-    """The posterior-cache tensors of a model, a cache, or a stack of caches of equal sizes."""
-    if hasattr(model, "posterior_cache"):
-        model = model.posterior_cache()
-    if not isinstance(model, GPPosteriorCache):
-        return _stack_caches(list(model))
-    theta = model.hyperparameters
-    return {
-        "inputs": model.inputs,
-        "K_inv": model.K_inv,
-        "beta": model.beta,
-        "lengthscales": theta.lengthscales,
-        "signal_variance": theta.signal_variance,
-        "noise_variance": theta.noise_variance,
-    }
-
-
 class Particles:
     """Propagates P reparameterised particles through a policy and a GP dynamics model (Eq. 4).
 
@@ -164,7 +148,7 @@ class Particles:
             raise ValueError(f"resample_every must be >= 0 (0: never resample), got {resample_every}")
         if seed < 0:
             raise ValueError(f"seed must be >= 0, got {seed}")
-        data = _cache_tensors(model)
+        data = cache_tensors(model)
         self.dtype = dtype or data["inputs"].dtype
         data = {k: v.detach().to(self.dtype) for k, v in data.items()}
 
