@@ -23,7 +23,7 @@ from tqdm.contrib.logging import logging_redirect_tqdm
 from qtl.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint, set_rng_state
 from qtl.data import TransitionDataset
 from qtl.features import AngleFeatures
-from qtl.models import DynamicsGP
+from qtl.models import DynamicsGP, GPHyperparameters
 from qtl.policies import Policy, SquashedPolicy
 from qtl.policy_search import NonFiniteObjective
 from qtl.recorder import BASE_COLUMNS, RunRecorder, theta_columns, theta_row, trajectory_figure
@@ -174,11 +174,13 @@ def run(cfg: DictConfig, output_dir: Path, *, resume: bool = False) -> RunResult
     data = TransitionDataset(task.state_dim, task.action_dim)
     rows: list[dict[str, Any]] = []
     timings: list[dict[str, Any]] = []
+    theta: GPHyperparameters | None = None  # θ of the latest model (none before the first fit)
     first = 0
     if checkpoint is not None:
         data = TransitionDataset.from_state(checkpoint["dataset"])
         policy.load_state_dict(checkpoint["policy"])
         rows, timings = list(checkpoint["metrics"]), list(checkpoint["timings"])
+        theta = None if checkpoint["theta"] is None else GPHyperparameters(**checkpoint["theta"])
         first = checkpoint["episode"] + 1
         set_rng_state(checkpoint["rng"])
         log.info("resuming %s after episode %d", output_dir, checkpoint["episode"])
@@ -204,6 +206,7 @@ def run(cfg: DictConfig, output_dir: Path, *, resume: bool = False) -> RunResult
                     model = fit_dynamics(data, features, cfg.model, torch_generator(cfg.seed, episode, MODEL_STREAM),
                                          dtype)
                     fit_s = time.perf_counter() - tic
+                    theta = model.hyperparameters
 
                     # -- Lines 6-9: evaluate π over f (V^π, Eq. 4) and improve ψ until convergence.
                     tic = time.perf_counter()
@@ -224,7 +227,7 @@ def run(cfg: DictConfig, output_dir: Path, *, resume: bool = False) -> RunResult
                         model_smse=one_step_smse(model, real, features, dtype),
                         model_log_evidence=_log_evidence(model),
                         policy_evaluations=found.evaluations,
-                        **theta_row(model.hyperparameters),
+                        **theta_row(theta),
                     )
                     learned = episode - cfg.random_episodes
                     if cfg.figure_every > 0 and learned % cfg.figure_every == 0:
@@ -242,6 +245,9 @@ def run(cfg: DictConfig, output_dir: Path, *, resume: bool = False) -> RunResult
                 save_checkpoint(output_dir, episode, {
                     "config": OmegaConf.to_yaml(cfg),
                     "dataset": data.state(),
+                    "theta": None if theta is None else {
+                        "lengthscales": theta.lengthscales, "signal_variance": theta.signal_variance,
+                        "noise_variance": theta.noise_variance},
                     "policy": {k: v.detach().clone() for k, v in policy.state_dict().items()},
                     "metrics": recorder.rows,
                     "timings": recorder.timings,

@@ -53,6 +53,8 @@ def test_tiny_run_leaves_metrics_checkpoints_and_events(tmp_path):
         "episode_0000.pt", "episode_0001.pt", "episode_0002.pt"]
     state = load_checkpoint(latest_checkpoint(tmp_path))
     assert state["episode"] == 2 and len(state["dataset"]["states"]) == 3
+    assert state["theta"]["lengthscales"].shape == (4, 6)  # θ per output: E x (features + action)
+    assert load_checkpoint(tmp_path / "checkpoints" / "episode_0000.pt")["theta"] is None  # random episode
     assert result.returns == [float(r["return"]) for r in rows]
 
 
