@@ -1,4 +1,4 @@
-"""The posterior-cache tensors a propagator works on, from one model, one cache or a stack of them."""
+"""What a propagator is handed: the GP's posterior-cache tensors, checked against policy and reward."""
 
 from __future__ import annotations
 
@@ -8,6 +8,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from qtl.features import AngleFeatures
 from qtl.models import GPPosteriorCache
 
 
@@ -35,3 +36,32 @@ def cache_tensors(model: GPPosteriorCache | Sequence[GPPosteriorCache] | Any) ->
         raise ValueError(f"stacked GP caches must share n, D and E; got shapes {sorted(shapes)}")
     per_cache = [_tensors(c) for c in caches]
     return {name: torch.stack([t[name] for t in per_cache]) for name in per_cache[0]}
+
+
+def propagation_inputs(
+    model: GPPosteriorCache | Sequence[GPPosteriorCache] | Any,
+    policy: Any,
+    reward: Any,
+    angle_dims: Sequence[int],
+    dtype: torch.dtype | None,
+) -> tuple[dict[str, Tensor], AngleFeatures, torch.dtype]:
+    """The model's tensors (detached, in ``dtype`` or the model's), the angle features, and the dtype.
+
+    GP inputs must be [φ(x), u] (`D + K + F`) and outputs Δ in raw coordinates (`E = D`); the policy
+    must act on φ(x) and the reward score D-dimensional states. A mismatch raises ValueError.
+    """
+    data = cache_tensors(model)
+    dtype = dtype or data["inputs"].dtype
+    data = {k: v.detach().to(dtype) for k, v in data.items()}
+    state_dim = data["beta"].shape[-2]
+    features = AngleFeatures(state_dim, angle_dims)
+    gp_input_dim = data["inputs"].shape[-1]
+    if gp_input_dim != features.output_dim + policy.output_dim:
+        raise ValueError(
+            f"GP input dimension {gp_input_dim} != features ({features.output_dim}) + actions ({policy.output_dim})"
+        )
+    if policy.input_dim != features.output_dim:
+        raise ValueError(f"policy takes {policy.input_dim} inputs, the features have {features.output_dim}")
+    if reward.state_dim != state_dim:
+        raise ValueError(f"reward is for {reward.state_dim}-D states, the GP predicts {state_dim}-D")
+    return data, features, dtype

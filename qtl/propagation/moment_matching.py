@@ -22,10 +22,9 @@ from typing import TYPE_CHECKING, Any
 import torch
 from torch import Tensor
 
-from qtl.features import AngleFeatures
 from qtl.gaussian import Gaussian, GaussianMap, MomentMatch, symmetrize
 from qtl.models.dynamics_gp import GPPosteriorCache
-from qtl.propagation.gp_cache import cache_tensors
+from qtl.propagation.gp_cache import propagation_inputs
 from qtl.propagation.kernel_moments import SEKernelMoments
 from qtl.rewards import ExpectedSaturatingReward
 
@@ -71,23 +70,8 @@ class MomentMatching:
         include_noise: bool = False,
         dtype: torch.dtype | None = None,
     ) -> None:
-        data = cache_tensors(model)
-        self.dtype = dtype or data["inputs"].dtype
-        data = {k: v.detach().to(self.dtype) for k, v in data.items()}
-
-        state_dim = data["beta"].shape[-2]
-        self.state_dim = state_dim
-        self.features = AngleFeatures(state_dim, angle_dims)
-        gp_input_dim = data["inputs"].shape[-1]
-        if gp_input_dim != self.features.output_dim + policy.output_dim:
-            raise ValueError(
-                f"GP input dimension {gp_input_dim} != features ({self.features.output_dim}) + "
-                f"actions ({policy.output_dim})"
-            )
-        if policy.input_dim != self.features.output_dim:
-            raise ValueError(f"policy takes {policy.input_dim} inputs, the features have {self.features.output_dim}")
-        if reward.state_dim != state_dim:
-            raise ValueError(f"reward is for {reward.state_dim}-D states, the GP predicts {state_dim}-D")
+        data, self.features, self.dtype = propagation_inputs(model, policy, reward, angle_dims, dtype)
+        self.state_dim = self.features.state_dim
         self.policy = policy
         self.reward = reward
         self.include_noise = include_noise
