@@ -52,6 +52,7 @@ class _BestSeen:
         self.policy = policy
         self.value = -math.inf
         self.state: dict[str, Tensor] | None = None
+        self.calls = 0  # evaluations of the objective, failed ones included
 
     def offer(self, value: float) -> None:
         if value > self.value:
@@ -74,7 +75,7 @@ class _RestartingSearch:
         self.restarts = restarts
         self.perturbation = perturbation
 
-    def _run(self, params: list[nn.Parameter], objective: Callable[[], Tensor], tick: Callable[[], None]) -> int:
+    def _run(self, params: list[nn.Parameter], objective: Callable[[], Tensor], tick: Callable[[], None]) -> None:
         raise NotImplementedError
 
     def __call__(
@@ -96,17 +97,19 @@ class _RestartingSearch:
             seen = _BestSeen(policy)
 
             def tracked(seen: _BestSeen = seen) -> Tensor:
+                seen.calls += 1
                 value = _checked(objective())
                 seen.offer(float(value.detach()))
                 return value
 
             params = [p for p in policy.parameters() if p.requires_grad]
             try:
-                evaluations += self._run(params, tracked, tick)
+                self._run(params, tracked, tick)
             except (NonFiniteObjective, torch.linalg.LinAlgError) as err:
                 log.warning("policy search run %d stopped at a numerically invalid ψ (%s); "
                             "it keeps the best ψ it evaluated", run, err)
             run_values.append(seen.value)
+            evaluations += seen.calls
             if seen.state is not None and seen.value > best.value:
                 best.value, best.state = seen.value, seen.state
         if best.state is None:
@@ -124,26 +127,22 @@ class LBFGSSearch(_RestartingSearch):
             raise ValueError(f"max_iter must be >= 1, got {max_iter}")
         self.max_iter = max_iter
 
-    def _run(self, params: list[nn.Parameter], objective: Callable[[], Tensor], tick: Callable[[], None]) -> int:
+    def _run(self, params: list[nn.Parameter], objective: Callable[[], Tensor], tick: Callable[[], None]) -> None:
         optimiser = torch.optim.LBFGS(
             params, lr=1.0, max_iter=self.max_iter, max_eval=self.max_iter, line_search_fn="strong_wolfe"
         )
-        count = 0
 
         def closure() -> Tensor:
-            nonlocal count
             optimiser.zero_grad()
             loss = -_checked(objective())
             loss.backward()
             for p in params:
                 if p.grad is not None and not torch.isfinite(p.grad).all():
                     raise NonFiniteObjective("gradient of the predicted return is not finite")
-            count += 1
             tick()
             return loss
 
         optimiser.step(closure)
-        return count
 
 
 class AdamSearch(_RestartingSearch):
@@ -155,7 +154,7 @@ class AdamSearch(_RestartingSearch):
             raise ValueError(f"steps must be >= 1 and lr > 0, got {steps} and {lr}")
         self.steps, self.lr = steps, lr
 
-    def _run(self, params: list[nn.Parameter], objective: Callable[[], Tensor], tick: Callable[[], None]) -> int:
+    def _run(self, params: list[nn.Parameter], objective: Callable[[], Tensor], tick: Callable[[], None]) -> None:
         optimiser = torch.optim.Adam(params, lr=self.lr)
         for _ in range(self.steps):
             optimiser.zero_grad()
@@ -163,4 +162,3 @@ class AdamSearch(_RestartingSearch):
             loss.backward()
             optimiser.step()
             tick()
-        return self.steps

@@ -41,6 +41,7 @@ def test_invalid_region_stops_the_run_but_keeps_the_best_point_seen():
 
     result = LBFGSSearch(max_iter=50, restarts=1)(point, objective)
     assert math.isfinite(result.value) and point.x[0] <= 0.5
+    assert result.evaluations >= 2  # the failed evaluation counts too
     assert result.value == pytest.approx(float(bowl(point)))
 
 
