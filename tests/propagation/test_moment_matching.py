@@ -4,18 +4,16 @@ from __future__ import annotations
 
 import itertools
 
-import numpy as np
 import pytest
 import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from envs.rewards import SaturatingReward
 from qtl.features import AngleFeatures
 from qtl.gaussian import Gaussian
 from qtl.policies import LinearPolicy, RBFPolicy, SquashedPolicy
 from qtl.propagation import MomentMatching
-from qtl.rewards import ExpectedSaturatingReward
+from tests.helpers import quadratic_reward
 
 DTYPE = torch.float64
 NUM_SAMPLES = 100_000
@@ -25,22 +23,6 @@ NUM_SAMPLES = 100_000
 APPROX_MEAN_TOL = 0.15
 APPROX_STD_RATIO = (0.75, 1.25)
 APPROX_VALUE_REL_TOL = 0.1
-
-
-def quadratic_reward(state_dim: int, angle_dims=(), width: float = 1.5) -> ExpectedSaturatingReward:
-    """A saturating reward around the origin on all augmented coordinates."""
-    aug = state_dim + len(angle_dims)
-    target = np.zeros(aug)
-    for k, _ in enumerate(angle_dims):
-        target[state_dim - len(angle_dims) + 2 * k + 1] = 1.0  # cos θ = 1 at θ = 0
-    spec = SaturatingReward(
-        state_dim=state_dim,
-        angle_dims=tuple(angle_dims),
-        target=tuple(target),
-        weight=tuple(map(tuple, np.eye(aug))),
-        width=width,
-    )
-    return ExpectedSaturatingReward.from_spec(spec)
 
 
 @pytest.fixture(scope="module")

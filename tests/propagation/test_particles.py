@@ -4,13 +4,11 @@ from __future__ import annotations
 
 import itertools
 
-import numpy as np
 import pytest
 import torch
 from hydra import compose, initialize_config_module
 from hydra.utils import instantiate
 
-from envs.rewards import SaturatingReward
 from qtl.config import register_configs
 from qtl.features import AngleFeatures
 from qtl.gaussian import Gaussian
@@ -18,7 +16,7 @@ from qtl.policies import LinearPolicy, RBFPolicy, SquashedPolicy
 from qtl.policy_search import NonFiniteObjective
 from qtl.propagation import MomentMatching, Particles
 from qtl.propagation.particles import _safe_sqrt
-from qtl.rewards import ExpectedSaturatingReward
+from tests.helpers import quadratic_reward
 
 DTYPE = torch.float64
 # Enough particles that the Monte Carlo standard error of one step is small against the
@@ -31,22 +29,6 @@ APPROX_MEAN_TOL = 0.15
 APPROX_STD_RATIO = (0.75, 1.25)
 # Agreement of particles with an independent per-particle reference using the same noise.
 EXACT_RTOL, EXACT_ATOL = 1e-9, 1e-12
-
-
-def quadratic_reward(state_dim: int, angle_dims=(), width: float = 1.5) -> ExpectedSaturatingReward:
-    """A saturating reward around the origin on all augmented coordinates."""
-    aug = state_dim + len(angle_dims)
-    target = np.zeros(aug)
-    for k, _ in enumerate(angle_dims):
-        target[state_dim - len(angle_dims) + 2 * k + 1] = 1.0  # cos θ = 1 at θ = 0
-    spec = SaturatingReward(
-        state_dim=state_dim,
-        angle_dims=tuple(angle_dims),
-        target=tuple(target),
-        weight=tuple(map(tuple, np.eye(aug))),
-        width=width,
-    )
-    return ExpectedSaturatingReward.from_spec(spec)
 
 
 def linear_parts(gp_factory):
