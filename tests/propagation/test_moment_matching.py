@@ -13,7 +13,7 @@ from qtl.features import AngleFeatures
 from qtl.gaussian import Gaussian
 from qtl.policies import LinearPolicy, RBFPolicy, SquashedPolicy
 from qtl.propagation import MomentMatching
-from tests.helpers import quadratic_reward
+from tests.helpers import gradcheck_value_wrt_policy_and_start, quadratic_reward
 
 DTYPE = torch.float64
 NUM_SAMPLES = 100_000
@@ -171,23 +171,7 @@ def test_gradcheck_three_step_rollout_wrt_policy(gp_factory):
     policy = SquashedPolicy(RBFPolicy(3, 1, 3, generator=torch.Generator().manual_seed(2)), 1.0)
     propagator = MomentMatching(gp, policy, quadratic_reward(2, (1,)), angle_dims=(1,))
     start = Gaussian(torch.tensor([0.1, 0.4], dtype=DTYPE), 0.05 * torch.eye(2, dtype=DTYPE))
-    names = [name for name, _ in policy.named_parameters()]
-    psi = tuple(p.detach().clone().requires_grad_() for p in policy.parameters())
-
-    class Value(torch.nn.Module):
-        def __init__(self):
-            super().__init__()
-            self.policy = policy
-
-        def forward(self, mean):
-            return propagator.expected_return(Gaussian(mean, start.cov), 3)
-
-    def value(mean, *params):
-        swapped = {f"policy.{n}": p for n, p in zip(names, params, strict=True)}
-        return torch.func.functional_call(Value(), swapped, (mean,))
-
-    mean = start.mean.clone().requires_grad_()
-    assert torch.autograd.gradcheck(value, (mean, *psi))
+    assert gradcheck_value_wrt_policy_and_start(policy, lambda s: propagator.expected_return(s, 3), start)
 
 
 def test_gradient_reaches_policy_parameters(pendulum_system):

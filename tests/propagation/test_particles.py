@@ -16,7 +16,7 @@ from qtl.policies import LinearPolicy, RBFPolicy, SquashedPolicy
 from qtl.policy_search import NonFiniteObjective
 from qtl.propagation import MomentMatching, Particles
 from qtl.propagation.particles import _safe_sqrt
-from tests.helpers import quadratic_reward
+from tests.helpers import gradcheck_value_wrt_policy_and_start, quadratic_reward
 
 DTYPE = torch.float64
 # Enough particles that the Monte Carlo standard error of one step is small against the
@@ -155,22 +155,8 @@ def test_gradcheck_two_step_rollout_wrt_policy_and_start(gp_factory):
     policy = SquashedPolicy(RBFPolicy(3, 1, 3, generator=torch.Generator().manual_seed(2)), 1.0)
     particles = Particles(gp, policy, quadratic_reward(2, (1,)), angle_dims=(1,), num_particles=3, seed=1)
     start = Gaussian(torch.tensor([0.1, 0.4], dtype=DTYPE), 0.05 * torch.eye(2, dtype=DTYPE))
-    names = [name for name, _ in policy.named_parameters()]
-    psi = tuple(p.detach().clone().requires_grad_() for p in policy.parameters())
-
-    class Value(torch.nn.Module):
-        def __init__(self):
-            super().__init__()
-            self.policy = policy
-
-        def forward(self, mean):
-            return particles.rollout(Gaussian(mean, start.cov), 2).value  # fixed noise: draw 0
-
-    def value(mean, *params):
-        swapped = {f"policy.{n}": p for n, p in zip(names, params, strict=True)}
-        return torch.func.functional_call(Value(), swapped, (mean,))
-
-    assert torch.autograd.gradcheck(value, (start.mean.clone().requires_grad_(), *psi))
+    # Fixed noise (draw 0): rollout() does not advance the draw.
+    assert gradcheck_value_wrt_policy_and_start(policy, lambda s: particles.rollout(s, 2).value, start)
 
 
 @pytest.mark.parametrize("every", [1, 2, 3])
