@@ -43,6 +43,7 @@ class TaskConfig:
     """A task: the gymnasium env (``env.id`` plus constructor kwargs) and what the learner needs."""
 
     name: str = MISSING
+    family: Optional[str] = None  # noqa: UP045  (transfer stays within a family; null: the env id)
     env: dict[str, Any] = MISSING
     horizon: int = MISSING
     angle_dims: list[int] = field(default_factory=list)
@@ -61,6 +62,17 @@ class ModelConfig:
 
 
 @dataclass
+class TransferConfig:
+    """Transfer from a source run (Algorithm 1): what is transferred and the compliance gate."""
+
+    source: Optional[str] = None  # noqa: UP045
+    hyperparameters: bool = True
+    policy: bool = False
+    min_compliance: Optional[float] = None  # noqa: UP045
+    compliance_temperature: Optional[float] = None  # noqa: UP045
+
+
+@dataclass
 class TrainConfig:
     """Top level of ``qtl-train``."""
 
@@ -68,6 +80,7 @@ class TrainConfig:
     propagation: Any = MISSING
     policy: Any = MISSING
     optimizer: Any = MISSING
+    rule: Any = field(default_factory=lambda: {"_target_": "qtl.transfer.NoTransfer"})
     seed: int = 0
     random_episodes: int = 1
     episodes: int = 9
@@ -78,6 +91,7 @@ class TrainConfig:
     progress: bool = True
     figure_every: int = 3
     model: ModelConfig = field(default_factory=ModelConfig)
+    transfer: TransferConfig = field(default_factory=TransferConfig)
 
 
 def register_configs() -> None:

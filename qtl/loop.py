@@ -1,4 +1,4 @@
-"""Algorithm 1 of the paper, top to bottom: PILCO's learning loop (θ and ψ from the task itself)."""
+"""Algorithm 1 of the paper, top to bottom: PILCO's learning loop, with qualitative transfer at its two seams."""
 
 from __future__ import annotations
 
@@ -30,6 +30,7 @@ from qtl.recorder import BASE_COLUMNS, RunRecorder, theta_columns, theta_row, tr
 from qtl.rewards import ExpectedSaturatingReward
 from qtl.seeding import seed_everything
 from qtl.task import Task
+from qtl.transfer.plan import TransferPlan
 
 log = logging.getLogger(__name__)
 
@@ -116,11 +117,16 @@ def gp_training_pairs(data: TransitionDataset, features: AngleFeatures, dtype: t
 
 
 def fit_dynamics(
-    data: TransitionDataset, features: AngleFeatures, cfg: DictConfig, generator: torch.Generator, dtype: torch.dtype
+    data: TransitionDataset,
+    features: AngleFeatures,
+    cfg: DictConfig,
+    generator: torch.Generator,
+    dtype: torch.dtype,
+    start: GPHyperparameters | None = None,
 ) -> DynamicsGP:
-    """Infer the transition function: θ_p by evidence maximisation on all tuples (lines 5 and 12)."""
+    """Learn θ_p by evidence maximisation on all tuples (line 12), from ``start`` or PILCO's heuristic."""
     inputs, targets = gp_training_pairs(data, features, dtype)
-    model = DynamicsGP(inputs, targets, dtype=dtype)
+    model = DynamicsGP(inputs, targets, hyperparameters=start, dtype=dtype)
     model.fit(restarts=cfg.restarts, max_iter=cfg.max_iter, generator=generator)
     return model
 
@@ -152,7 +158,7 @@ def progress_bar(total: int, initial: int, enabled: bool) -> Iterator[tqdm]:
 
 
 def run(cfg: DictConfig, output_dir: Path, *, resume: bool = False) -> RunResult:
-    """Algorithm 1 without transfer (PILCO): learn the task of ``cfg`` in ``output_dir``."""
+    """Algorithm 1: learn the task of ``cfg`` in ``output_dir``, from a source run when ``cfg.transfer`` names one."""
     # -- Check everything before any work: task, env, spaces, resume point. -----------------------
     dtype = DTYPES[cfg.dtype]
     if cfg.device != "cpu":
@@ -167,10 +173,12 @@ def run(cfg: DictConfig, output_dir: Path, *, resume: bool = False) -> RunResult
     start = task.start_distribution(dtype)
     make_propagator = instantiate(cfg.propagation)
     search = instantiate(cfg.optimizer)
+    plan = TransferPlan(cfg.transfer, instantiate(cfg.rule), task, features, dtype)  # source loaded and checked
     total = cfg.random_episodes + cfg.episodes
 
-    # -- Algorithm 1, line 1: the initial policy; an empty set of tuples. -----------------------
+    # -- Lines 1-2: π ← π(ψ_s) when ψ_s is transferred (else PILCO's ψ_0); θ_s waits for the first model.
     policy = initial_policy(cfg, task, features, dtype)
+    plan.initial_policy(policy)
     data = TransitionDataset(task.state_dim, task.action_dim)
     rows: list[dict[str, Any]] = []
     timings: list[dict[str, Any]] = []
@@ -181,10 +189,13 @@ def run(cfg: DictConfig, output_dir: Path, *, resume: bool = False) -> RunResult
         policy.load_state_dict(checkpoint["policy"])
         rows, timings = list(checkpoint["metrics"]), list(checkpoint["timings"])
         theta = None if checkpoint["theta"] is None else GPHyperparameters(**checkpoint["theta"])
+        plan.load_state_dict(checkpoint["transfer"])
         first = checkpoint["episode"] + 1
         set_rng_state(checkpoint["rng"])
         log.info("resuming %s after episode %d", output_dir, checkpoint["episode"])
-    columns = BASE_COLUMNS + theta_columns(task.state_dim, task.gp_input_dim)
+    columns = (BASE_COLUMNS + theta_columns(task.state_dim, task.gp_input_dim)
+               + theta_columns(task.state_dim, task.gp_input_dim, "theta_p"))
+    log.info("%s", plan.describe())
     recorder = RunRecorder(output_dir, columns, rows, timings)
     env = task.make_env()
     show_progress = bool(cfg.progress)
@@ -195,18 +206,27 @@ def run(cfg: DictConfig, output_dir: Path, *, resume: bool = False) -> RunResult
                 row: dict[str, Any] = {"episode": episode}
                 figure = None
                 if episode < cfg.random_episodes:
-                    # -- Line 3: interact with the environment using random actions. ------------
-                    rng = np.random.default_rng(derive_seed(cfg.seed, episode, ACTION_STREAM))
-                    real = run_episode(env, task, random_actor(task, rng), derive_seed(cfg.seed, episode, ENV_STREAM))
-                    row.update(kind="random", predicted_return=math.nan)
+                    # -- Line 3: interact with the environment: π(ψ_s) if transferred, else random actions.
+                    if plan.transfer_policy:
+                        actor, kind = policy_actor(policy, features, dtype), "source_policy"
+                    else:
+                        rng = np.random.default_rng(derive_seed(cfg.seed, episode, ACTION_STREAM))
+                        actor, kind = random_actor(task, rng), "random"
+                    real = run_episode(env, task, actor, derive_seed(cfg.seed, episode, ENV_STREAM))
+                    row.update(kind=kind, predicted_return=math.nan)
                     fit_s = search_s = 0.0
                 else:
-                    # -- Lines 5 and 12: infer the transition function f from all tuples and θ. --
+                    # -- Line 12: learn θ_p from all tuples (evidence maximisation). ---------------
                     tic = time.perf_counter()
                     model = fit_dynamics(data, features, cfg.model, torch_generator(cfg.seed, episode, MODEL_STREAM),
-                                         dtype)
+                                         dtype, start=plan.fit_start())
+                    theta_p = model.hyperparameters
+                    compliance = plan.compliance(model)  # Eq. 14 (NaN without a source)
+                    # -- Lines 2, 13 and 5: θ_0 = θ_s, then the updating rule; f inferred with θ. --
+                    theta = plan.update(theta_p, len(data), compliance)
+                    if theta is not theta_p:
+                        model.hyperparameters = theta
                     fit_s = time.perf_counter() - tic
-                    theta = model.hyperparameters
 
                     # -- Lines 6-9: evaluate π over f (V^π, Eq. 4) and improve ψ until convergence.
                     tic = time.perf_counter()
@@ -227,7 +247,10 @@ def run(cfg: DictConfig, output_dir: Path, *, resume: bool = False) -> RunResult
                         model_smse=one_step_smse(model, real, features, dtype),
                         model_log_evidence=_log_evidence(model),
                         policy_evaluations=found.evaluations,
+                        compliance=compliance,
+                        fallback=int(plan.fallen_back),
                         **theta_row(theta),
+                        **theta_row(theta_p, "theta_p"),
                     )
                     learned = episode - cfg.random_episodes
                     if cfg.figure_every > 0 and learned % cfg.figure_every == 0:
@@ -248,6 +271,7 @@ def run(cfg: DictConfig, output_dir: Path, *, resume: bool = False) -> RunResult
                     "theta": None if theta is None else {
                         "lengthscales": theta.lengthscales, "signal_variance": theta.signal_variance,
                         "noise_variance": theta.noise_variance},
+                    "transfer": plan.state_dict(),
                     "policy": {k: v.detach().clone() for k, v in policy.state_dict().items()},
                     "metrics": recorder.rows,
                     "timings": recorder.timings,

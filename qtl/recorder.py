@@ -33,18 +33,23 @@ BASE_COLUMNS = [
     "model_smse",
     "model_log_evidence",
     "policy_evaluations",
+    "compliance",  # task compliance Λ (Eq. 14) of the tuples the episode's model learned from
+    "fallback",  # 1 once the compliance gate has switched the run to PILCO
 ]
 
 
-def theta_columns(num_outputs: int, input_dim: int) -> list[str]:
-    """``theta/out{j}/lengthscale/in{i}``, ``…/signal_variance``, ``…/noise_variance`` column names."""
+def theta_columns(num_outputs: int, input_dim: int, prefix: str = "theta") -> list[str]:
+    """``<prefix>/out{j}/lengthscale/in{i}``, ``…/signal_variance``, ``…/noise_variance`` column names.
+
+    ``theta``: θ_i, what the episode's model used; ``theta_p``: θ_p_i, what evidence maximisation found.
+    """
     names = [f"lengthscale/in{i}" for i in range(input_dim)] + ["signal_variance", "noise_variance"]
-    return [f"theta/out{j}/{n}" for j in range(num_outputs) for n in names]
+    return [f"{prefix}/out{j}/{n}" for j in range(num_outputs) for n in names]
 
 
-def theta_row(theta: GPHyperparameters | None) -> dict[str, float]:
+def theta_row(theta: GPHyperparameters | None, prefix: str = "theta") -> dict[str, float]:
     """θ as ``{column: value}`` (empty when there is no model yet)."""
-    return {} if theta is None else {f"theta/{k}": v for k, v in theta.as_dict().items()}
+    return {} if theta is None else {f"{prefix}/{k}": v for k, v in theta.as_dict().items()}
 
 
 class RunRecorder:
@@ -87,10 +92,12 @@ class RunRecorder:
             "policy/evaluations": row.get("policy_evaluations"),
             "model/smse": row.get("model_smse"),
             "model/log_evidence": row.get("model_log_evidence"),
+            "transfer/compliance": row.get("compliance"),
+            "transfer/fallback": row.get("fallback"),
             "time/model_fit_s": timings["model_fit_s"],
             "time/policy_search_s": timings["policy_search_s"],
         }
-        tags.update({f"model/{k[len('theta/'):]}": v for k, v in row.items() if k.startswith("theta/")})
+        tags.update({k: v for k, v in row.items() if k.startswith(("theta/", "theta_p/"))})
         for tag, value in tags.items():
             if value is not None and value != "" and math.isfinite(float(value)):
                 self.writer.add_scalar(tag, float(value), step)

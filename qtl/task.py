@@ -24,6 +24,7 @@ class Task:
     """Everything the learner needs to know about a task, checked before any work starts."""
 
     name: str
+    family: str  # tasks of one family share state, action and GP input spaces: transfer stays within one
     env_id: str
     env_kwargs: dict[str, Any]
     horizon: int
@@ -77,6 +78,7 @@ class Task:
             )
         return cls(
             name=str(cfg["name"]),
+            family=str(cfg.get("family") or env_id),
             env_id=env_id,
             env_kwargs=env_cfg,
             horizon=horizon,

@@ -42,7 +42,8 @@ def test_installed_cli_writes_everything_into_its_run_dir(tmp_path):
     events.Reload()
     tags = set(events.Tags()["scalars"])
     assert {"eval/return", "policy/predicted_return", "model/smse", "time/model_fit_s",
-            "time/policy_search_s", "model/out0/noise_variance"} <= tags
+            "time/policy_search_s", "theta/out0/noise_variance", "theta_p/out0/noise_variance",
+            "transfer/fallback"} <= tags
     assert sorted(p.name for p in tmp_path.iterdir()) == ["run"]  # nothing in the cwd
 
     resumed = run_cli([exe, f"resume={run_dir}", "episodes=2", "threads=1"], cwd=tmp_path)

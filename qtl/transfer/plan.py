@@ -1,0 +1,138 @@
+"""What a run transfers and how θ evolves: the two seams of Algorithm 1 (ψ at line 1, θ at lines 2 and 13)."""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Mapping
+from typing import Any
+
+import torch
+from torch import nn
+
+from qtl.features import AngleFeatures
+from qtl.models import DynamicsGP, GPHyperparameters
+from qtl.task import Task
+from qtl.transfer.compliance import task_compliance
+from qtl.transfer.rules import HyperparameterRule
+from qtl.transfer.source import SourceRun, TransferError
+
+log = logging.getLogger(__name__)
+
+
+class TransferPlan:
+    """The transfer settings of a run, checked, and the state of its θ across episodes.
+
+    Built from the ``transfer`` config node and the instantiated ``rule``; every inconsistency
+    (a rule that needs θ_s without a source, a source of another task family or other
+    dimensions, a compliance gate outside [0, 1], ...) raises :class:`TransferError` here,
+    before any episode runs. Without a source it is PILCO's plan: θ_i = θ_p_i, ψ_0 random.
+    """
+
+    def __init__(
+        self,
+        cfg: Mapping[str, Any],
+        rule: HyperparameterRule,
+        task: Task,
+        features: AngleFeatures,
+        dtype: torch.dtype = torch.float64,
+    ) -> None:
+        self.rule = rule
+        self.transfer_theta = bool(cfg.get("hyperparameters", True))
+        self.transfer_policy = bool(cfg.get("policy", False))
+        self.min_compliance = cfg.get("min_compliance")
+        self.temperature = cfg.get("compliance_temperature")
+        source_dir = cfg.get("source")
+        if source_dir is None:
+            if rule.uses_source:
+                raise TransferError(f"rule={rule.name} starts from the source's θ_s: give transfer.source=<run dir>")
+            if self.transfer_policy:
+                raise TransferError("transfer.policy=true needs a source run: give transfer.source=<run dir>")
+            if self.min_compliance is not None:
+                raise TransferError("transfer.min_compliance needs a source run: give transfer.source=<run dir>")
+            self.source, self.transfer_theta = None, False
+        else:
+            if self.transfer_theta and not rule.uses_source:
+                raise TransferError(
+                    "transfer.hyperparameters=true but rule=none ignores θ_s: choose rule=free|forgetting|bayesian "
+                    "(or an approach=... preset), or set transfer.hyperparameters=false"
+                )
+            if rule.uses_source and not self.transfer_theta:
+                raise TransferError(f"rule={rule.name} updates θ_s, but transfer.hyperparameters=false")
+            self.source = SourceRun.load(source_dir)
+            self.source.check_compatible(task)
+        if self.min_compliance is not None and not 0.0 <= float(self.min_compliance) <= 1.0:
+            raise TransferError(f"transfer.min_compliance must be in [0, 1], got {self.min_compliance}")
+        if self.temperature is not None and not float(self.temperature) > 0:
+            raise TransferError(f"transfer.compliance_temperature must be > 0, got {self.temperature}")
+        self._source_model = None if self.source is None else self.source.model(features, dtype)
+        self.theta: GPHyperparameters | None = None  # θ_{i−1}: what the previous model used
+        self.fallen_back = False  # the compliance gate switched this run to PILCO
+
+    # -- line 1: ψ ----------------------------------------------------------------------------
+
+    def initial_policy(self, policy: nn.Module) -> None:
+        """ψ_0 = ψ_s when the policy is transferred (Algorithm 1, line 1); else leave PILCO's ψ_0."""
+        if self.transfer_policy and self.source is not None:
+            self.source.check_policy(policy)
+            policy.load_state_dict(self.source.policy)
+
+    # -- lines 2, 12, 13: θ -----------------------------------------------------------------
+
+    def fit_start(self) -> GPHyperparameters | None:
+        """Where evidence maximisation starts: θ_s for the free rule, else PILCO's heuristic (None)."""
+        if self.rule.warm_start and self.source is not None and not self.fallen_back:
+            return self.source.theta
+        return None
+
+    def compliance(self, target: DynamicsGP) -> float:
+        """Task compliance Λ (Eq. 14) of the target model's tuples; NaN without a source."""
+        if self._source_model is None:
+            return math.nan
+        return task_compliance(self._source_model, target, temperature=self.temperature).value
+
+    def update(self, learned: GPHyperparameters, num_tuples: int, compliance: float = math.nan) -> GPHyperparameters:
+        """θ of the next model: θ_0 = θ_s (line 2, Eq. 6), then the rule on θ_p (line 13); PILCO: θ_p."""
+        if not self.transfer_theta or self.fallen_back:
+            self.theta = learned
+            return learned
+        if self.min_compliance is not None and compliance < float(self.min_compliance):
+            log.warning("task compliance %.3f < transfer.min_compliance=%s: θ_s is dropped, the run continues as "
+                        "PILCO (θ = θ_p)", compliance, self.min_compliance)
+            self.fallen_back = True
+            self.theta = learned
+            return learned
+        if self.theta is None:
+            self.theta = self.rule.start(self.source.theta.to(dtype=learned.lengthscales.dtype))
+        else:
+            self.theta = self.rule.update(self.theta, learned, num_tuples)
+        return self.theta
+
+    # -- checkpoints ----------------------------------------------------------------------------
+
+    def state_dict(self) -> dict[str, Any]:
+        """θ_{i−1}, the rule's state and the gate's, for a checkpoint."""
+        return {
+            "theta": None if self.theta is None else _theta_state(self.theta),
+            "rule": self.rule.state_dict(),
+            "fallen_back": self.fallen_back,
+        }
+
+    def load_state_dict(self, state: Mapping[str, Any]) -> None:
+        """Restore :meth:`state_dict`."""
+        self.theta = None if state["theta"] is None else GPHyperparameters(**state["theta"])
+        self.rule.load_state_dict(state["rule"])
+        self.fallen_back = bool(state["fallen_back"])
+
+    def describe(self) -> str:
+        """What is transferred from where, one line."""
+        if self.source is None:
+            return "no transfer (PILCO)"
+        what = [w for w, on in (("θ_s", self.transfer_theta), ("ψ_s", self.transfer_policy)) if on] or ["nothing"]
+        return (f"transfer of {' and '.join(what)} from {self.source.path} (episode {self.source.episode}, "
+                f"task {self.source.task.name}); rule {self.rule.describe()}")
+
+
+def _theta_state(theta: GPHyperparameters) -> dict[str, torch.Tensor]:
+    return {"lengthscales": theta.lengthscales, "signal_variance": theta.signal_variance,
+            "noise_variance": theta.noise_variance}
