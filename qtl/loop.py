@@ -15,6 +15,7 @@ from typing import Any
 import gymnasium
 import numpy as np
 import torch
+from hydra.errors import InstantiationException
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 from tqdm.auto import tqdm
@@ -74,6 +75,16 @@ def derive_seed(seed: int, episode: int, stream: int) -> int:
 def torch_generator(seed: int, episode: int, stream: int) -> torch.Generator:
     """A torch Generator seeded for one random stream of one episode."""
     return torch.Generator().manual_seed(derive_seed(seed, episode, stream))
+
+
+def instantiate_checked(node: DictConfig) -> Any:
+    """Hydra's instantiate, with a component's own ValueError (a bad setting) raised as it is."""
+    try:
+        return instantiate(node)
+    except InstantiationException as err:
+        if isinstance(err.__cause__, ValueError):
+            raise err.__cause__ from None
+        raise
 
 
 def run_episode(env: gymnasium.Env, task: Task, act: Callable[[np.ndarray], np.ndarray], seed: int) -> Episode:
@@ -172,8 +183,8 @@ def run(cfg: DictConfig, output_dir: Path, *, resume: bool = False) -> RunResult
     reward = ExpectedSaturatingReward.from_spec(task.reward)
     start = task.start_distribution(dtype)
     make_propagator = instantiate(cfg.propagation)
-    search = instantiate(cfg.optimizer)
-    plan = TransferPlan(cfg.transfer, instantiate(cfg.rule), task, features, dtype)  # source loaded and checked
+    search = instantiate_checked(cfg.optimizer)
+    plan = TransferPlan(cfg.transfer, instantiate_checked(cfg.rule), task, features, dtype)  # source loaded and checked
     total = cfg.random_episodes + cfg.episodes
 
     # -- Lines 1-2: π ← π(ψ_s) when ψ_s is transferred (else PILCO's ψ_0); θ_s waits for the first model.

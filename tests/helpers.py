@@ -6,9 +6,12 @@ from collections.abc import Callable
 
 import numpy as np
 import torch
+from hydra import compose, initialize_config_module
+from omegaconf import DictConfig
 from torch import Tensor
 
 from envs.rewards import SaturatingReward
+from qtl.config import register_configs
 from qtl.gaussian import Gaussian
 from qtl.rewards import ExpectedSaturatingReward
 
@@ -48,3 +51,25 @@ def gradcheck_value_wrt_policy_and_start(policy: torch.nn.Module, value: Callabl
         return torch.func.functional_call(Value(), swapped, (mean,))
 
     return torch.autograd.gradcheck(call, (start.mean.clone().requires_grad_(), *psi))
+
+
+# A budget that exercises every line of the loop in seconds: short horizon, few evaluations.
+TINY = [
+    "task.env.horizon=8",
+    "task.success.last_steps=3",
+    "task.policy_size=5",
+    "optimizer.max_iter=3",
+    "optimizer.restarts=2",
+    "model.restarts=1",
+    "model.max_iter=5",
+    "progress=false",
+    "figure_every=1",
+    "threads=1",
+]
+
+
+def tiny_config(*overrides: str) -> DictConfig:
+    """The composed ``train`` config with the TINY budget and ``overrides``."""
+    register_configs()
+    with initialize_config_module(config_module="qtl.configs", version_base="1.3"):
+        return compose(config_name="train", overrides=[*TINY, *overrides])

@@ -7,32 +7,11 @@ from pathlib import Path
 
 import pytest
 import torch
-from hydra import compose, initialize_config_module
 
 from qtl.checkpoint import CheckpointError, latest_checkpoint, load_checkpoint
-from qtl.config import register_configs
 from qtl.loop import run
 from qtl.task import TaskError
-
-# A budget that exercises every line of the loop in seconds: short horizon, few evaluations.
-TINY = [
-    "task.env.horizon=8",
-    "task.success.last_steps=3",
-    "task.policy_size=5",
-    "optimizer.max_iter=3",
-    "optimizer.restarts=2",
-    "model.restarts=1",
-    "model.max_iter=5",
-    "progress=false",
-    "figure_every=1",
-    "threads=1",
-]
-
-
-def tiny_config(*overrides: str):
-    register_configs()
-    with initialize_config_module(config_module="qtl.configs", version_base="1.3"):
-        return compose(config_name="train", overrides=[*TINY, *overrides])
+from tests.helpers import tiny_config
 
 
 def read_csv(path: Path) -> list[dict[str, str]]:
