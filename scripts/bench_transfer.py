@@ -1,0 +1,152 @@
+"""Benchmark — qualitative transfer on cart-pole: 0.5 kg source → 2.0 kg target, PILCO vs QTL, 5 seeds.
+
+Per seed, the source is the 0.5 kg learning-loop benchmark's run of that seed
+(``runs/bench_cartpole/cartpole/seed_<k>``, made by ``scripts/bench_cartpole.py``; created here with
+the same command when missing). Every approach then learns the 2.0 kg target through the real CLI
+with the same budget and overrides; QTL runs take θ_s and ψ_s from the seed's source. Reported per
+approach: episodes to success (the task's criterion; the initial episode is 0), area under the
+learning curve (trapezoid over the episodes), final performance (mean of the last 3 episodes)
+and time to convergence (first episode at 95 % of it), mean ± std over seeds. Required: QTL
+reaches success in fewer episodes than PILCO (median over seeds; a run that never succeeds
+counts as the budget). Writes ``docs/bench/transfer.json`` and its table in ``docs/benchmarks.md``.
+
+Runs are deterministic and causal, so a finished run directory made by the same overrides is
+reused rather than recomputed, and an interrupted one is resumed; extra arguments are Hydra
+overrides for every target run.
+
+    python scripts/bench_transfer.py [override ...] [--seeds 0 1 2 3 4] [--episodes 7] [--jobs 2]
+    python scripts/bench_transfer.py optimizer.restarts=1
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import statistics
+import sys
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import benchlib
+
+from qtl.launch import ensure_run
+from qtl.metrics import Curve
+
+APPROACHES = {  # name in the table: overrides of the target run (beyond transfer.source)
+    "PILCO": [],
+    "QTL Bayesian": ["approach=qtl_bayesian"],
+    "QTL γ = 0.9": ["approach=qtl_gamma_09"],
+}
+SLUG = {"PILCO": "pilco", "QTL Bayesian": "qtl_bayesian", "QTL γ = 0.9": "qtl_gamma_09"}
+SOURCE_EPISODES = 7  # learned episodes of a source run (bench_cartpole's default)
+
+
+def stats(values: list[float], digits: int = 1) -> str:
+    """Mean ± std over seeds."""
+    if len(values) < 2:
+        return f"{values[0]:.{digits}f}" if values else "—"
+    return f"{statistics.mean(values):.{digits}f} ± {statistics.stdev(values):.{digits}f}"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
+    parser.add_argument("--episodes", type=int, default=7, help="learned episodes per target run (after 1 initial)")
+    parser.add_argument("--mass", type=float, default=2.0, help="target pole mass (kg)")
+    parser.add_argument("--approaches", nargs="+", default=list(SLUG.values()), choices=list(SLUG.values()))
+    parser.add_argument("--jobs", type=int, default=2, help="runs in parallel (one torch thread each)")
+    parser.add_argument("--sources", type=Path, default=benchlib.ROOT / "runs" / "bench_cartpole" / "cartpole")
+    parser.add_argument("--runs-dir", type=Path, default=benchlib.ROOT / "runs" / "bench_transfer")
+    args, overrides = parser.parse_known_args()
+    approaches = [name for name, slug in SLUG.items() if slug in args.approaches]
+
+    def source(seed: int) -> Path:
+        return args.sources / f"seed_{seed}"
+
+    def make_source(seed: int) -> float:
+        return ensure_run([f"seed={seed}", f"episodes={SOURCE_EPISODES}"], source(seed), SOURCE_EPISODES + 1)
+
+    def target(job: tuple[str, int]) -> tuple[str, int, float]:
+        name, seed = job
+        run_dir = args.runs_dir / f"m{args.mass}" / SLUG[name] / f"seed_{seed}"
+        transfer = [f"transfer.source={source(seed)}"] if APPROACHES[name] else []
+        run = [f"seed={seed}", f"episodes={args.episodes}", f"task.env.pole_mass={args.mass}", *overrides,
+               *APPROACHES[name], *transfer]
+        return name, seed, ensure_run(run, run_dir, args.episodes + 1)
+
+    jobs = [(name, seed) for seed in args.seeds for name in approaches]  # seed-major: partial results pair up
+    with ThreadPoolExecutor(max_workers=args.jobs) as pool:
+        if any(APPROACHES[name] for name in approaches):
+            list(pool.map(make_source, args.seeds))  # sources first: every QTL run of a seed reads its own
+        walls = {(name, seed): wall for name, seed, wall in pool.map(target, jobs)}
+
+    budget = args.episodes + 1
+    results = {}
+    for name in approaches:
+        per_seed = []
+        for seed in args.seeds:
+            run_dir = args.runs_dir / f"m{args.mass}" / SLUG[name] / f"seed_{seed}"
+            curve = Curve.read(run_dir, budget)
+            with open(run_dir / "timings.csv", newline="") as f:
+                search = [float(t["policy_search_s"]) for t in csv.DictReader(f)][1:budget]
+            per_seed.append({"seed": seed, "run_dir": str(run_dir), "returns": curve.returns,
+                             "policy_search_s_per_episode": statistics.mean(search),
+                             "successes": [int(s) for s in curve.successes], "compliance": curve.compliance,
+                             "wall_s_this_call": walls[(name, seed)], **curve.summary()})
+        to_success = [r["first_success"] if r["first_success"] is not None else budget for r in per_seed]
+        results[name] = {"per_seed": per_seed, "median_episodes_to_success": statistics.median(to_success),
+                         "solved": sum(r["first_success"] is not None for r in per_seed)}
+    judged = "PILCO" in results and len(args.seeds) >= 5
+    pilco = results.get("PILCO", {}).get("median_episodes_to_success")
+    passed = {name: r["median_episodes_to_success"] < pilco for name, r in results.items()
+              if name != "PILCO" and pilco is not None} if judged else {}
+
+    info = {"date": benchlib.today(), "command": benchlib.command_line(), "machine": benchlib.machine(),
+            "overrides": overrides, "episodes_per_run": budget, "target_pole_mass": args.mass,
+            "sources": str(args.sources), "required": "QTL median episodes to success < PILCO's", "passed": passed,
+            "results": results}
+    out = benchlib.ROOT / "docs" / "bench" / "transfer.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(info, indent=2) + "\n")
+
+    m = info["machine"]
+    verdict = ("not judged: fewer than 5 seeds or no PILCO baseline" if not judged else
+               "; ".join(f"{name}: {'met' if ok else 'NOT met'}" for name, ok in passed.items()))
+    lines = [
+        f"## Transfer: cart-pole 0.5 kg → {args.mass} kg",
+        "",
+        f"`{info['command']}` — {info['date']}, {m['cpu']} ({m['cores']} cores), {args.jobs} runs in parallel with "
+        f"1 torch thread each, torch {m['torch']}. {budget} episodes per target run (1 initial + {args.episodes} "
+        f"learned); sources: the 0.5 kg benchmark runs of the same seeds ({SOURCE_EPISODES + 1} episodes, "
+        f"default settings). Target overrides: `{' '.join(overrides) or 'none'}`. Success: tip within 0.15 m of the "
+        "target for the last 2 s; episode 0 is the initial one (random for PILCO, ψ_s for QTL). AUC: trapezoid "
+        f"over the {budget} episodes. Results: `docs/bench/transfer.json`.",
+        "",
+        f"**Required: QTL's median episodes to success below PILCO's — {verdict}.**",
+        "",
+        "| approach | first success per seed | median episodes to success | solved | AUC | final performance "
+        "| time to convergence | compliance (last episode) | policy search (s/episode) |",
+        "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
+    ]
+    for name, r in results.items():
+        seeds = r["per_seed"]
+        firsts = " ".join("—" if s["first_success"] is None else str(s["first_success"]) for s in seeds)
+        compliance = [s["compliance"][-1] for s in seeds if s["compliance"][-1] == s["compliance"][-1]]
+        lines.append(
+            f"| {name} | {firsts} | {r['median_episodes_to_success']:g} | {r['solved']}/{len(seeds)} | "
+            f"{stats([s['auc'] for s in seeds])} | {stats([s['final_performance'] for s in seeds])} | "
+            f"{stats([s['time_to_convergence'] for s in seeds])} | {stats(compliance, 2) if compliance else '—'} | "
+            f"{stats([s['policy_search_s_per_episode'] for s in seeds])} |"
+        )
+    lines += ["", "Returns per episode (seed: curve):", ""]
+    for name, r in results.items():
+        for s in r["per_seed"]:
+            lines.append(f"- {name}, seed {s['seed']}: " + " ".join(f"{v:.1f}" for v in s["returns"]))
+    benchlib.write_section("bench_transfer", "\n".join(lines))
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()
