@@ -11,8 +11,9 @@ import yaml
 
 from qtl.checkpoint import CHECKPOINT_DIR
 
-# Overrides that do not change what a run computes.
-NEUTRAL_OVERRIDES = ("hydra.run.dir=", "progress=", "threads=")
+# Overrides that do not change what a run computes (``episodes`` only says how far it goes: runs
+# are causal, so a run extended by resuming equals one made longer from the start).
+NEUTRAL_OVERRIDES = ("hydra.run.dir=", "progress=", "threads=", "episodes=")
 
 
 class RunMismatch(RuntimeError):
@@ -25,10 +26,11 @@ def effective(overrides: list[str]) -> list[str]:
 
 
 def ensure_run(overrides: list[str], run_dir: Path, episodes: int, *, threads: int = 1) -> float:
-    """Make ``run_dir`` a finished run of ``overrides`` with ``episodes`` episodes in all; seconds spent here.
+    """Make ``run_dir`` a run of ``overrides`` with at least ``episodes`` episodes in all; seconds spent here.
 
-    A finished run made by the same overrides is reused (same config, same seed: the same run),
-    an interrupted one is resumed from its last checkpoint, any other run in the way is an error.
+    A run made by the same overrides is reused (same config, same seed: the same run) and, when
+    interrupted or shorter, resumed from its last checkpoint up to the ``episodes=`` of
+    ``overrides``; a run made by other overrides is an error.
     """
     made_with = run_dir / ".hydra" / "overrides.yaml"
     if made_with.exists():
@@ -39,7 +41,10 @@ def ensure_run(overrides: list[str], run_dir: Path, episodes: int, *, threads: i
     if len(checkpoints) >= episodes:
         return 0.0
     if checkpoints:
-        args = [f"resume={run_dir}", "progress=false", f"threads={threads}"]
+        extend = [o for o in overrides if o.startswith("episodes=")]
+        # Hydra's own record of the resuming call goes inside the run, not into the current directory.
+        record = run_dir / "resumes" / time.strftime("%Y%m%d-%H%M%S")
+        args = [f"resume={run_dir}", *extend, "progress=false", f"threads={threads}", f"hydra.run.dir={record}"]
     else:
         args = [*overrides, "progress=false", f"threads={threads}", f"hydra.run.dir={run_dir}"]
     start = time.perf_counter()

@@ -14,7 +14,7 @@ Runs are deterministic and causal, so a finished run directory made by the same 
 reused rather than recomputed, and an interrupted one is resumed; extra arguments are Hydra
 overrides for every target run.
 
-    python scripts/bench_transfer.py [override ...] [--seeds 0 1 2 3 4] [--episodes 7] [--jobs 2]
+    python scripts/bench_transfer.py [override ...] [--seeds 0 1 2 3 4] [--episodes 9] [--jobs 2]
     python scripts/bench_transfer.py optimizer.restarts=1
 """
 
@@ -53,7 +53,7 @@ def stats(values: list[float], digits: int = 1) -> str:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
-    parser.add_argument("--episodes", type=int, default=7, help="learned episodes per target run (after 1 initial)")
+    parser.add_argument("--episodes", type=int, default=9, help="learned episodes per target run (after 1 initial)")
     parser.add_argument("--mass", type=float, default=2.0, help="target pole mass (kg)")
     parser.add_argument("--approaches", nargs="+", default=list(SLUG.values()), choices=list(SLUG.values()))
     parser.add_argument("--jobs", type=int, default=2, help="runs in parallel (one torch thread each)")

@@ -31,3 +31,6 @@ def test_demo_runs_source_transfer_and_baseline_then_summarises(tmp_path):
     assert (out / "source" / "metrics.csv").stat().st_mtime_ns == before
     with pytest.raises(RunMismatch, match="other overrides"):
         ensure_run(["seed=1", "episodes=1", *TINY], out / "source", 2)
+    # A longer budget extends the run by resuming it (runs are causal: the same as a longer run).
+    assert ensure_run(["seed=0", "episodes=2", *TINY], out / "source", 3) > 0
+    assert len((out / "source" / "metrics.csv").read_text().splitlines()) == 1 + 3
