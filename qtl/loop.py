@@ -200,7 +200,8 @@ def run(cfg: DictConfig, output_dir: Path, *, resume: bool = False) -> RunResult
         policy.load_state_dict(checkpoint["policy"])
         rows, timings = list(checkpoint["metrics"]), list(checkpoint["timings"])
         theta = None if checkpoint["theta"] is None else GPHyperparameters(**checkpoint["theta"])
-        plan.load_state_dict(checkpoint["transfer"])
+        if "transfer" in checkpoint:  # checkpoints of runs made before transfer existed are PILCO runs
+            plan.load_state_dict(checkpoint["transfer"])
         first = checkpoint["episode"] + 1
         set_rng_state(checkpoint["rng"])
         log.info("resuming %s after episode %d", output_dir, checkpoint["episode"])
