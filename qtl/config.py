@@ -73,6 +73,14 @@ class TransferConfig:
 
 
 @dataclass
+class SweepConfig:
+    """Where an experiment preset (``configs/experiment/``) puts its source and target runs."""
+
+    name: Optional[str] = None  # noqa: UP045
+    root: str = "runs/experiments"
+
+
+@dataclass
 class TrainConfig:
     """Top level of ``qtl-train``."""
 
@@ -92,6 +100,7 @@ class TrainConfig:
     figure_every: int = 3
     model: ModelConfig = field(default_factory=ModelConfig)
     transfer: TransferConfig = field(default_factory=TransferConfig)
+    sweep: SweepConfig = field(default_factory=SweepConfig)
 
 
 def register_configs() -> None:

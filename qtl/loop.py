@@ -21,7 +21,14 @@ from omegaconf import DictConfig, OmegaConf
 from tqdm.auto import tqdm
 from tqdm.contrib.logging import logging_redirect_tqdm
 
-from qtl.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint, set_rng_state
+from qtl.checkpoint import (
+    CHECKPOINT_DIR,
+    CheckpointError,
+    latest_checkpoint,
+    load_checkpoint,
+    save_checkpoint,
+    set_rng_state,
+)
 from qtl.data import TransitionDataset
 from qtl.features import AngleFeatures
 from qtl.models import DynamicsGP, GPHyperparameters
@@ -175,7 +182,15 @@ def run(cfg: DictConfig, output_dir: Path, *, resume: bool = False) -> RunResult
     if cfg.device != "cpu":
         raise ValueError(f"device={cfg.device!r}: this version of the loop runs on the CPU only (device=cpu)")
     task = Task.from_config(OmegaConf.to_container(cfg.task, resolve=True))
-    checkpoint = load_checkpoint(latest_checkpoint(output_dir)) if resume else None
+    if resume:
+        checkpoint = load_checkpoint(latest_checkpoint(output_dir))
+    elif any((Path(output_dir) / CHECKPOINT_DIR).glob("episode_*.pt")):
+        raise CheckpointError(
+            f"{str(output_dir)!r} already holds a run's checkpoints: resume={output_dir} continues it (resume=auto in "
+            "a sweep), or choose another hydra.run.dir; nothing was overwritten"
+        )
+    else:
+        checkpoint = None
     seed_everything(cfg.seed)
     if cfg.threads:
         torch.set_num_threads(cfg.threads)

@@ -40,6 +40,29 @@ def resume_config(run_dir: Path, overrides: list[str]) -> DictConfig:
     return cfg
 
 
+def auto_resume(run_dir: Path, cfg: DictConfig) -> DictConfig:
+    """``resume=auto`` (sweeps): continue the run in ``run_dir`` if it holds one of this config, else start it.
+
+    A run of another configuration in ``run_dir`` is an error; only the keys a resume may change
+    (``episodes``, ``progress``, ``figure_every``, ``threads``) may differ, and take ``cfg``'s values.
+    """
+    try:
+        checkpoint = load_checkpoint(latest_checkpoint(run_dir))
+    except CheckpointError:
+        cfg.resume = None
+        return cfg
+    stored = OmegaConf.merge(OmegaConf.structured(TrainConfig), OmegaConf.create(checkpoint["config"]))
+    mine = {k: v for k, v in OmegaConf.to_container(cfg).items() if k not in RESUME_OVERRIDABLE}
+    theirs = {k: v for k, v in OmegaConf.to_container(stored).items() if k not in RESUME_OVERRIDABLE}
+    if mine != theirs:
+        differ = sorted(k for k in mine.keys() | theirs.keys() if mine.get(k) != theirs.get(k))
+        raise CheckpointError(f"resume=auto: {str(run_dir)!r} holds a run of another configuration (differs: {differ})")
+    for key in RESUME_OVERRIDABLE - {"resume"}:
+        stored[key] = cfg[key]
+    stored.resume = str(run_dir)
+    return stored
+
+
 def summary(result: RunResult) -> str:
     """One line: episodes, final return, success or not."""
     first = result.first_success
@@ -59,7 +82,9 @@ def main(cfg: DictConfig) -> None:
     """Learn the configured task; print where the logs are and a one-line summary."""
     hydra_cfg = HydraConfig.get()
     output_dir = Path(hydra_cfg.runtime.output_dir)
-    if cfg.resume is not None:
+    if cfg.resume == "auto":
+        cfg = auto_resume(output_dir, cfg)
+    elif cfg.resume is not None:
         output_dir = Path(cfg.resume).expanduser().resolve()
         cfg = resume_config(output_dir, list(hydra_cfg.overrides.task))
         # The resumed episodes are logged into the interrupted run's log too.

@@ -1,0 +1,57 @@
+"""A paper experiment as two real Hydra sweeps on the joblib launcher, then its report (tiny budget)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+TINY = ["episodes=1", "task.env.horizon=6", "task.success.last_steps=2", "task.policy_size=4",
+        "optimizer.max_iter=2", "optimizer.restarts=1", "model.restarts=1", "model.max_iter=3"]
+
+
+@pytest.fixture(scope="module")
+def quick_cartpole(tmp_path_factory) -> tuple[Path, subprocess.CompletedProcess]:
+    root = tmp_path_factory.mktemp("experiment") / "cartpole_quick"
+    done = subprocess.run([sys.executable, str(ROOT / "scripts" / "run_experiment.py"), "cartpole", "--quick",
+                           *TINY, f"sweep.root={root}"], capture_output=True, text=True, timeout=600, cwd=root.parent)
+    assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-3000:]
+    return root, done
+
+
+def test_two_seed_two_episode_sweep_runs_sources_then_targets(quick_cartpole):
+    root, done = quick_cartpole
+    assert sorted(p.name for p in (root / "source").iterdir() if p.is_dir()) == ["seed_0", "seed_1"]
+    targets = sorted(str(p.relative_to(root / "target")) for p in (root / "target").glob("*/*/seed_*"))
+    assert targets == [f"{a}/m2.0/seed_{s}" for a in ("pilco", "qtl_bayesian") for s in (0, 1)]
+    for run_dir in (root / "target").glob("*/*/seed_*"):
+        rows = (run_dir / "metrics.csv").read_text().splitlines()
+        assert len(rows) == 1 + 2  # header + 2 episodes
+    # QTL runs start from their own seed's source policy; both approaches log compliance against it.
+    kinds = {p.parent.parent.name: (p / "metrics.csv").read_text().splitlines()[1].split(",")[1]
+             for p in (root / "target").glob("*/*/seed_0")}
+    assert kinds == {"pilco": "random", "qtl_bayesian": "source_policy"}
+    assert "joblib" in (root / "target" / "multirun.yaml").read_text().lower()
+    assert done.stdout.index("[1/2]") < done.stdout.index("[2/2]")
+
+
+def test_repeated_sweep_continues_instead_of_redoing(quick_cartpole):
+    root, _ = quick_cartpole
+    before = {p: p.stat().st_mtime_ns for p in root.glob("target/*/*/seed_*/checkpoints/*.pt")}
+    again = subprocess.run([sys.executable, "-m", "qtl", "experiment=cartpole_quick", *TINY, f"sweep.root={root}"],
+                           capture_output=True, text=True, timeout=600, cwd=root.parent)
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert {p: p.stat().st_mtime_ns for p in root.glob("target/*/*/seed_*/checkpoints/*.pt")} == before
+
+
+def test_report_of_the_sweep(quick_cartpole):
+    root, _ = quick_cartpole
+    report = (root / "report" / "report.md").read_text()
+    assert "PILCO" in report and "Bayesian" in report and "m2.0" in report
+    assert "qtl-train experiment=cartpole_quick_source" in report
+    assert json.loads((root / "report" / "tables.json").read_text())
+    assert (root / "report" / "fig_learning_curves.png").stat().st_size > 0
