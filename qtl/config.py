@@ -59,6 +59,8 @@ class ModelConfig:
 
     restarts: int = 3
     max_iter: int = 100
+    sparse_above: Optional[int] = 1000  # noqa: UP045  (more tuples than this: the sparse GP; null: never)
+    inducing: int = 300
 
 
 @dataclass

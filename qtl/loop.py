@@ -31,7 +31,7 @@ from qtl.checkpoint import (
 )
 from qtl.data import TransitionDataset
 from qtl.features import AngleFeatures
-from qtl.models import DynamicsGP, GPHyperparameters
+from qtl.models import DynamicsGP, GPHyperparameters, SparseDynamicsGP
 from qtl.policies import Policy, SquashedPolicy
 from qtl.policy_search import NonFiniteObjective
 from qtl.recorder import BASE_COLUMNS, RunRecorder, theta_columns, theta_row, trajectory_figure
@@ -142,9 +142,18 @@ def fit_dynamics(
     dtype: torch.dtype,
     start: GPHyperparameters | None = None,
 ) -> DynamicsGP:
-    """Learn θ_p by evidence maximisation on all tuples (line 12), from ``start`` or PILCO's heuristic."""
+    """Learn θ_p by evidence maximisation on all tuples (line 12), from ``start`` or PILCO's heuristic.
+
+    Above ``cfg.sparse_above`` tuples the model is the sparse GP with ``cfg.inducing`` inducing inputs.
+    """
     inputs, targets = gp_training_pairs(data, features, dtype)
-    model = DynamicsGP(inputs, targets, hyperparameters=start, dtype=dtype)
+    if cfg.get("sparse_above") is not None and len(inputs) > cfg.sparse_above:
+        log.info("%d tuples > model.sparse_above=%d: the sparse GP, %d inducing inputs", len(inputs),
+                 cfg.sparse_above, min(cfg.inducing, len(inputs)))
+        model = SparseDynamicsGP(inputs, targets, hyperparameters=start, num_inducing=cfg.inducing,
+                                 generator=generator, dtype=dtype)
+    else:
+        model = DynamicsGP(inputs, targets, hyperparameters=start, dtype=dtype)
     model.fit(restarts=cfg.restarts, max_iter=cfg.max_iter, generator=generator)
     return model
 

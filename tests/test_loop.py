@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import math
 from pathlib import Path
 
 import pytest
@@ -92,3 +93,11 @@ def test_bad_task_fails_before_any_work(tmp_path, overrides, message):
     with pytest.raises(TaskError, match=message):
         run(tiny_config(*overrides), tmp_path)
     assert not (tmp_path / "metrics.csv").exists()
+
+
+def test_above_the_threshold_the_loop_uses_the_sparse_gp(tmp_path, caplog):
+    with caplog.at_level("INFO", logger="qtl.loop"):
+        result = run(tiny_config("episodes=2", "model.sparse_above=10", "model.inducing=6"), tmp_path)
+    assert "16 tuples > model.sparse_above=10: the sparse GP, 6 inducing inputs" in caplog.text
+    assert "8 tuples >" not in caplog.text  # the first model (8 tuples) is exact
+    assert len(result.returns) == 3 and all(math.isfinite(r) for r in result.predicted_returns[1:])

@@ -2,5 +2,6 @@
 
 from qtl.models.dynamics_gp import DynamicsGP, GPPosteriorCache, exact_gp_settings
 from qtl.models.hyperparameters import GPHyperparameters
+from qtl.models.sparse_gp import SparseDynamicsGP
 
-__all__ = ["DynamicsGP", "GPHyperparameters", "GPPosteriorCache", "exact_gp_settings"]
+__all__ = ["DynamicsGP", "GPHyperparameters", "GPPosteriorCache", "SparseDynamicsGP", "exact_gp_settings"]

@@ -167,14 +167,14 @@ class DynamicsGP(gpytorch.models.ExactGP):
         self.register_prior(
             "lengthscale_ratio_prior",
             SmoothedBoxPrior(-ls_bound, ls_bound, tail),
-            lambda m: (m.covar_module.base_kernel.lengthscale.squeeze(-2) / m.input_std).log(),
+            lambda m: (m.scale_kernel.base_kernel.lengthscale.squeeze(-2) / m.input_std).log(),
         )
         snr_bound = math.log(MAX_SNR)
         self.register_prior(
             "snr_prior",
             SmoothedBoxPrior(-snr_bound, snr_bound, tail),
             # `E x 1`: one log-SNR per output dimension.
-            lambda m: 0.5 * (m.covar_module.outputscale[:, None] / m.likelihood.noise).log(),
+            lambda m: 0.5 * (m.scale_kernel.outputscale[:, None] / m.likelihood.noise).log(),
         )
         self.register_prior(
             "noise_floor_prior",
@@ -183,6 +183,11 @@ class DynamicsGP(gpytorch.models.ExactGP):
         )
 
     # -- θ: the seam of transfer -----------------------------------------------------------
+
+    @property
+    def scale_kernel(self) -> gpytorch.kernels.ScaleKernel:
+        """The kernel of Eq. 3, α² exp(−½ (x − x')ᵀ Λ⁻¹ (x − x')), batched over outputs."""
+        return self.covar_module
 
     @property
     def num_outputs(self) -> int:
@@ -208,8 +213,8 @@ class DynamicsGP(gpytorch.models.ExactGP):
     def hyperparameters(self) -> GPHyperparameters:
         """θ currently in the kernel and likelihood (detached copies)."""
         return GPHyperparameters(
-            lengthscales=self.covar_module.base_kernel.lengthscale.detach().squeeze(-2).clone(),
-            signal_variance=self.covar_module.outputscale.detach().clone(),
+            lengthscales=self.scale_kernel.base_kernel.lengthscale.detach().squeeze(-2).clone(),
+            signal_variance=self.scale_kernel.outputscale.detach().clone(),
             noise_variance=self.likelihood.noise.detach().squeeze(-1).clone(),
         )
 
@@ -227,8 +232,8 @@ class DynamicsGP(gpytorch.models.ExactGP):
                 f"{NOISE_VARIANCE_MIN}"
             )
         theta = theta.to(dtype=self.train_x.dtype, device=self.train_x.device)
-        self.covar_module.base_kernel.lengthscale = theta.lengthscales[:, None, :]
-        self.covar_module.outputscale = theta.signal_variance
+        self.scale_kernel.base_kernel.lengthscale = theta.lengthscales[:, None, :]
+        self.scale_kernel.outputscale = theta.signal_variance
         self.likelihood.noise = theta.noise_variance[:, None]
         self.prediction_strategy = None  # θ changed: drop GPyTorch's cached solves
 

@@ -1,0 +1,167 @@
+"""A sparse GP dynamics model for large data: SGPR with m shared inducing inputs (Titsias 2009).
+
+The same model as :class:`~qtl.models.DynamicsGP` (zero mean, the SE kernel of Eq. 3, Gaussian
+noise, E outputs in one batch) with GPyTorch's ``InducingPointKernel``: evidence maximisation
+uses Titsias' collapsed bound, O(n m²) per evaluation instead of O(n³), and optimises the m
+inducing inputs Z (shared by the E outputs) together with θ. PILCO's own sparse option is FITC
+with ~300 pseudo-inputs; SGPR has the same predictive form and a bound that does not overfit Z.
+
+Prediction (Eq. 1-2 with the inducing inputs), per output a, with Σ = K_mm + σ⁻² K_mn K_nm:
+
+    m(x) = k_xm β,        β = σ⁻² Σ⁻¹ K_mn y
+    v(x) = α² − k_xm (K_mm⁻¹ − Σ⁻¹) k_mx
+
+which is the exact GP's form with (Z, β, K_mm⁻¹ − Σ⁻¹) in place of (X, β, (K + σ²I)⁻¹): the
+posterior cache has that form, so moment matching and particles run through it unchanged, at
+O(m²) per step. With Z = X the model is the exact GP.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+
+import gpytorch
+import torch
+from linear_operator.utils.cholesky import psd_safe_cholesky
+from linear_operator.utils.errors import NotPSDError
+from torch import Tensor
+
+from qtl.models.dynamics_gp import DynamicsGP, GPPosteriorCache, exact_gp_settings
+from qtl.models.hyperparameters import GPHyperparameters
+
+log = logging.getLogger(__name__)
+
+# Inducing inputs by default (PILCO's FITC uses about 300 pseudo-inputs).
+DEFAULT_INDUCING = 300
+
+
+class SparseDynamicsGP(DynamicsGP):
+    """Δ = x_{t+1} − x_t by SGPR with m inducing inputs shared by the E outputs (Eq. 1-3, sparse).
+
+    ``inducing_points``: Z `m x D` (default: ``num_inducing`` training inputs drawn without
+    replacement by ``generator``; all of them when n <= m). Everything else as
+    :class:`~qtl.models.DynamicsGP`: θ get/set, priors, fit, predict, posterior_cache.
+    """
+
+    def __init__(
+        self,
+        train_x: Tensor,
+        train_y: Tensor,
+        hyperparameters: GPHyperparameters | None = None,
+        *,
+        num_inducing: int = DEFAULT_INDUCING,
+        inducing_points: Tensor | None = None,
+        generator: torch.Generator | None = None,
+        dtype: torch.dtype = torch.float64,
+    ) -> None:
+        super().__init__(train_x, train_y, hyperparameters, dtype=dtype)
+        if inducing_points is None:
+            if num_inducing < 1:
+                raise ValueError(f"num_inducing must be >= 1, got {num_inducing}")
+            n = self.train_x.shape[0]
+            chosen = torch.randperm(n, generator=generator)[:num_inducing] if n > num_inducing else torch.arange(n)
+            inducing_points = self.train_x[chosen.to(self.train_x.device)]
+        if inducing_points.dim() != 2 or inducing_points.shape[-1] != self.input_dim:
+            raise ValueError(f"inducing_points must be `m x {self.input_dim}`, got {tuple(inducing_points.shape)}")
+        self.covar_module = gpytorch.kernels.InducingPointKernel(
+            self.covar_module, inducing_points=inducing_points.to(self.train_x).clone(), likelihood=self.likelihood
+        )
+        self.to(dtype=dtype, device=self.train_x.device)
+
+    @property
+    def scale_kernel(self) -> gpytorch.kernels.ScaleKernel:
+        """The kernel of Eq. 3 inside the inducing-point kernel (before wrapping: the kernel itself)."""
+        kernel = self.covar_module
+        return kernel.base_kernel if isinstance(kernel, gpytorch.kernels.InducingPointKernel) else kernel
+
+    @property
+    def inducing_points(self) -> Tensor:
+        """Z `m x D`."""
+        return self.covar_module.inducing_points.detach()
+
+    def fit(self, *, restarts: int = 3, max_iter: int = 100, generator: torch.Generator | None = None) -> Tensor:
+        """Maximise the collapsed bound over θ and Z from the current θ and ``restarts − 1`` perturbations.
+
+        Z is shared by the outputs, so the restart with the best total bound is kept whole (θ and Z).
+        """
+        if restarts < 1:
+            raise ValueError(f"restarts must be >= 1, got {restarts}")
+        start_theta, start_z = self.hyperparameters.log(), self.inducing_points.clone()
+        best: tuple[float, Tensor, Tensor, Tensor] | None = None  # (total, log θ, Z, per-output values)
+        for attempt in range(restarts):
+            log_theta = start_theta
+            if attempt > 0:
+                noise = torch.randn(log_theta.shape, generator=generator, dtype=log_theta.dtype).to(log_theta.device)
+                log_theta = log_theta + 0.5 * noise
+            try:
+                self.hyperparameters = GPHyperparameters.from_log(log_theta)
+                with torch.no_grad():
+                    self.covar_module.inducing_points.copy_(start_z)
+                value = self._optimise(max_iter)
+            except (NotPSDError, ValueError, RuntimeError) as err:
+                log.warning("sparse GP fit restart %d failed and is discarded: %s", attempt, err)
+                continue
+            total = float(value.sum())
+            if math.isfinite(total) and (best is None or total > best[0]):
+                best = (total, self.hyperparameters.log(), self.inducing_points.clone(), value)
+        if best is None:
+            raise RuntimeError("evidence maximisation of the sparse GP failed in every restart")
+        self.hyperparameters = GPHyperparameters.from_log(best[1])
+        with torch.no_grad():
+            self.covar_module.inducing_points.copy_(best[2])
+        return best[3]
+
+    def _factors(self) -> tuple[Tensor, Tensor, Tensor]:
+        """L_m (chol K_mm), A = L_m⁻¹ K_mn / σ and L_B (chol of B = I + A Aᵀ), per output."""
+        theta = self.hyperparameters
+        z = self.inducing_points
+        kernel = self.scale_kernel
+        with torch.no_grad(), exact_gp_settings():
+            k_mm = kernel(z.expand(self.num_outputs, *z.shape)).to_dense()  # E x m x m
+            k_mn = kernel(z.expand(self.num_outputs, *z.shape), self.train_inputs[0]).to_dense()  # E x m x n
+            chol_m = psd_safe_cholesky(k_mm)
+            a = torch.linalg.solve_triangular(chol_m, k_mn, upper=False) / theta.noise_variance.sqrt()[:, None, None]
+            eye = torch.eye(z.shape[0], dtype=a.dtype, device=a.device)
+            chol_b = psd_safe_cholesky(eye + a @ a.mT)
+        return chol_m, a, chol_b
+
+    def posterior_cache(self) -> GPPosteriorCache:
+        """Z, β = σ⁻² Σ⁻¹ K_mn y and K_mm⁻¹ − Σ⁻¹ per output: the exact GP's cache form at the inducing inputs."""
+        chol_m, a, chol_b = self._factors()
+        noise_std = self.hyperparameters.noise_variance.sqrt()
+        eye = torch.eye(a.shape[-2], dtype=a.dtype, device=a.device)
+        with torch.no_grad():
+            # Σ = L_m B L_mᵀ, so K_mm⁻¹ − Σ⁻¹ = L_m⁻ᵀ (I − B⁻¹) L_m⁻¹ (I − B⁻¹ is PSD: B >= I).
+            middle = eye - torch.cholesky_inverse(chol_b)
+            left = torch.linalg.solve_triangular(chol_m.mT, middle, upper=True)  # L_m⁻ᵀ (I − B⁻¹)
+            k_inv = torch.linalg.solve_triangular(chol_m.mT, left.mT, upper=True).mT
+            k_inv = 0.5 * (k_inv + k_inv.mT)
+            # β = σ⁻² Σ⁻¹ K_mn y = L_m⁻ᵀ B⁻¹ A y / σ.
+            ay = (a @ self.train_targets[..., None]) / noise_std[:, None, None]  # E x m x 1
+            beta = torch.linalg.solve_triangular(chol_m.mT, torch.cholesky_solve(ay, chol_b), upper=True)
+        return GPPosteriorCache(inputs=self.inducing_points, K_inv=k_inv, beta=beta.squeeze(-1),
+                                hyperparameters=self.hyperparameters)
+
+    def predict(self, x: Tensor, *, include_noise: bool = False) -> tuple[Tensor, Tensor]:
+        """Predictive mean and variance of Δ at deterministic inputs `k x D` (Eq. 1-2, sparse form): `k x E` each."""
+        if x.dim() != 2 or x.shape[-1] != self.input_dim:
+            raise ValueError(f"x must be `k x {self.input_dim}`, got shape {tuple(x.shape)}")
+        if not torch.isfinite(x).all():
+            raise ValueError("x contains non-finite value(s) (NaN or inf)")
+        cache = self.posterior_cache()
+        theta = cache.hyperparameters
+        x = x.to(self.train_x)
+        with torch.no_grad(), exact_gp_settings():
+            z = cache.inputs.expand(self.num_outputs, *cache.inputs.shape)
+            k_xm = self.scale_kernel(x.expand(self.num_outputs, *x.shape), z).to_dense()  # E x k x m
+            mean = (k_xm @ cache.beta[..., None]).squeeze(-1)
+            var = theta.signal_variance[:, None] - ((k_xm @ cache.K_inv) * k_xm).sum(-1)
+            var = var.clamp_min(0.0)
+            if include_noise:
+                var = var + theta.noise_variance[:, None]
+        return mean.T, var.T
+
+    def exact(self) -> DynamicsGP:
+        """The exact GP on the same data with the same θ (e.g. for leave-one-out predictions)."""
+        return DynamicsGP(self.train_x, self.train_y, self.hyperparameters, dtype=self.train_x.dtype)
