@@ -1,0 +1,423 @@
+"""Benchmark one full policy search and one rollout + gradient, moment matching and particles, on cart-pole data.
+
+Data: real transitions of the configured cart-pole (``qtl/CartPoleSwingUp-v0``, 0.5 kg, the defaults
+of ``configs/task/cartpole.yaml``), episodes of uniform random actions alternating with episodes of a
+random RBF policy, cut at n tuples, seeded. GP inputs are built as the loop builds them
+(``qtl.loop.gp_training_pairs``); one exact ``DynamicsGP`` per n is fitted once in float64 with
+``fit(restarts=1)`` (a benchmark model; the loop uses ``model.restarts``) and cached under
+``--cache-dir``. Each (propagator, n, dtype) then runs in a fresh subprocess, so that its peak
+resident memory is its own: the default ``train`` config composed with the propagator's overrides,
+propagator, optimiser, initial policy, start distribution, horizon and reward made exactly as
+``qtl/loop.py`` makes them, and the model loaded in the run's dtype. Measured: the median of
+``--repeats`` rollouts + gradients (``expected_return(...).backward()``) after one warm-up, and one
+policy search timed as the loop times it (propagator construction + search). Writes JSON (default
+``docs/bench/policy_search.json``) and, unless ``--no-docs``, its section of ``docs/benchmarks.md``.
+
+    .venv/bin/python scripts/bench_policy_search.py [--sizes 250 500 1000] [--dtypes float64 float32]
+        [--propagators moment_matching particles] [--threads 2] [--repeats 3] [--skip-search]
+        [--overrides OVERRIDE ...] [--mm-overrides OVERRIDE ...] [--particles-overrides OVERRIDE ...]
+        [--output PATH] [--no-docs] [--cache-dir DIR]
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import hashlib
+import json
+import logging
+import statistics
+import subprocess
+import sys
+import time
+import traceback
+import warnings
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from hydra import compose, initialize_config_module
+from hydra.utils import instantiate
+from omegaconf import DictConfig, OmegaConf
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import benchlib
+
+from qtl.config import register_configs
+from qtl.data import TransitionDataset
+from qtl.features import AngleFeatures
+from qtl.loop import (
+    DTYPES,
+    ENV_STREAM,
+    SEARCH_STREAM,
+    derive_seed,
+    gp_training_pairs,
+    initial_policy,
+    instantiate_checked,
+    policy_actor,
+    random_actor,
+    run_episode,
+    torch_generator,
+)
+from qtl.models import DynamicsGP
+from qtl.policies import RBFPolicy, SquashedPolicy
+from qtl.rewards import ExpectedSaturatingReward
+from qtl.seeding import seed_everything
+from qtl.task import Task
+
+SIZES = [250, 500, 1000]
+# The loop's settings per propagator: Hydra overrides of the default `train` config.
+PROPAGATORS: dict[str, list[str]] = {
+    "moment_matching": ["propagation=moment_matching", "optimizer=lbfgs"],
+    "particles": ["propagation=particles", "optimizer=adam", "optimizer.steps=500"],
+}
+# Issue 8's targets: wall time of one policy search, by (propagator, n), in seconds.
+TARGETS: dict[tuple[str, int], float] = {
+    ("moment_matching", 250): 15.0,
+    ("moment_matching", 500): 30.0,
+    ("particles", 250): 60.0,
+}
+TARGET_NOTES = {
+    "moment_matching": "one policy search",
+    "particles": "500 Adam steps, P = 400",
+}
+# Established implementations as issue 8 quotes them: context, not measured here.
+QUOTED_REFERENCES = [
+    "TF/GPflow PILCO (moment matching): 46–79 s per policy search, pendulum, 160–240 data points.",
+    "PyTorch particle PILCO: 265–430 s per policy search (500 Adam steps, 400 particles), cart-pole, "
+    "60–240 data points.",
+]
+# Data collection: random-action episodes alternate with episodes of a random RBF policy whose
+# targets (before squashing) are drawn with this std, so that the data cover swings, not only rest.
+RANDOM_POLICY_TARGET_STD = 1.0
+DATA_POLICY_STREAM = 7  # random stream of the data-collecting RBF policies (not one of the loop's)
+SEARCH_EPISODE = 1  # the search's generator is the one the loop's first learned episode gets
+MODEL_FIT_RESTARTS = 1
+DATA_VERSION = 1  # bump when the data or the fit change, to invalidate cached models
+MAX_RECORDED_WARNINGS = 5
+CACHE_DIR = benchlib.ROOT / "runs" / "bench_policy_search"
+DEFAULT_OUTPUT = benchlib.ROOT / "docs" / "bench" / "policy_search.json"
+SECTION = "bench_policy_search"
+DESCRIPTION = (
+    "Wall time of one full policy search with the loop's real settings (moment matching: the default "
+    "`propagation=moment_matching optimizer=lbfgs`; particles: `propagation=particles optimizer=adam "
+    "optimizer.steps=500`, P = 400) and of one rollout + gradient (`expected_return(...).backward()`, median of "
+    "the repeats after one warm-up) over the task's horizon, on real cart-pole transitions (0.5 kg; random-action "
+    "episodes alternating with random-RBF-policy episodes, cut at n tuples). One exact `DynamicsGP` per n, "
+    f"fitted once in float64 with `fit(restarts={MODEL_FIT_RESTARTS})` (a benchmark model; the loop uses "
+    "`model.restarts = 3`); the float32 rows load the same θ and data in float32 (model, posterior cache, "
+    "policy and start distribution in float32, as the loop with `dtype=float32`). Propagator, optimiser, "
+    "initial policy ψ_0, start distribution, horizon and reward are made from the composed default config "
+    "exactly as `qtl/loop.py` makes them; the search is timed as the loop times it (propagator construction + "
+    "search; torch.optim's one-off lazy import, ~1 s, is paid before, as the loop's GP fit pays it before its "
+    "first search). Each configuration runs in a fresh subprocess; peak RSS is its `getrusage` max RSS (torch, "
+    "GPyTorch and the model included). Evaluations: objective calls of the search (rollout + gradient each)."
+)
+
+
+class _WarningLog(logging.Handler):
+    """Collects the warnings the library logs during a measurement."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.WARNING)
+        self.messages: list[str] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        """Keep the message."""
+        self.messages.append(record.getMessage())
+
+
+def compose_config(propagator: str, dtype_name: str, overrides: list[str]) -> DictConfig:
+    """The default ``train`` config with the propagator's settings, the dtype and ``overrides``."""
+    register_configs()
+    with initialize_config_module(config_module="qtl.configs", version_base="1.3"):
+        return compose(config_name="train", overrides=[*PROPAGATORS[propagator], f"dtype={dtype_name}", *overrides])
+
+
+def make_task(cfg: DictConfig) -> Task:
+    """The configured task, as the loop builds it."""
+    return Task.from_config(OmegaConf.to_container(cfg.task, resolve=True))
+
+
+def data_policy(task: Task, num_basis: int, generator: torch.Generator) -> SquashedPolicy:
+    """A random RBF policy for collecting data: support points ~ N(0, I) in feature space, wide targets."""
+    targets = RANDOM_POLICY_TARGET_STD * torch.randn(num_basis, task.action_dim, generator=generator,
+                                                     dtype=torch.float64)
+    inner = RBFPolicy(task.feature_dim, task.action_dim, num_basis, targets=targets, generator=generator)
+    return SquashedPolicy(inner, torch.as_tensor(task.action_bound, dtype=torch.float64))
+
+
+def collect(task: Task, num_basis: int, n: int, seed: int) -> TransitionDataset:
+    """n real transitions: random-action and random-RBF-policy episodes in turn, the last one cut."""
+    features = AngleFeatures(task.state_dim, task.angle_dims)
+    data = TransitionDataset(task.state_dim, task.action_dim)
+    env = task.make_env()
+    try:
+        episode = 0
+        while len(data) < n:
+            if episode % 2 == 0:
+                actor = random_actor(task, np.random.default_rng(derive_seed(seed, episode, DATA_POLICY_STREAM)))
+            else:
+                policy = data_policy(task, num_basis, torch_generator(seed, episode, DATA_POLICY_STREAM))
+                actor = policy_actor(policy, features, torch.float64)
+            real = run_episode(env, task, actor, derive_seed(seed, episode, ENV_STREAM))
+            keep = min(len(real.actions), n - len(data))
+            data.add_episode(real.states[: keep + 1], real.actions[:keep])
+            episode += 1
+    finally:
+        env.close()
+    return data
+
+
+def model_path(cfg: DictConfig, n: int, seed: int, cache_dir: Path) -> Path:
+    """Where the fitted model of n tuples of this task and seed is cached."""
+    key = json.dumps({"task": OmegaConf.to_container(cfg.task, resolve=True), "n": n, "seed": seed,
+                      "restarts": MODEL_FIT_RESTARTS, "version": DATA_VERSION}, sort_keys=True)
+    return cache_dir / f"{cfg.task.name}_n{n}_seed{seed}_{hashlib.sha1(key.encode()).hexdigest()[:10]}.pt"
+
+
+def ensure_model(cfg: DictConfig, n: int, seed: int, cache_dir: Path) -> tuple[Path, dict[str, Any]]:
+    """The cached model of n tuples (fitted and saved first if missing) and how it was made."""
+    path = model_path(cfg, n, seed, cache_dir)
+    info_path = path.with_suffix(".json")
+    if path.exists() and info_path.exists():
+        return path, {**json.loads(info_path.read_text()), "cached": True}
+    task = make_task(cfg)
+    data = collect(task, int(cfg.task.policy_size), n, seed)
+    inputs, targets = gp_training_pairs(data, AngleFeatures(task.state_dim, task.angle_dims), torch.float64)
+    model = DynamicsGP(inputs, targets)
+    tic = time.perf_counter()
+    model.fit(restarts=MODEL_FIT_RESTARTS, max_iter=int(cfg.model.max_iter),
+              generator=torch.Generator().manual_seed(seed))
+    theta = model.hyperparameters
+    info = {"n": len(data), "episodes": data.num_episodes, "fit_s": time.perf_counter() - tic,
+            "fit_restarts": MODEL_FIT_RESTARTS, "fit_max_iter": int(cfg.model.max_iter), "dtype": "float64",
+            "signal_variance": theta.signal_variance.tolist(), "noise_variance": theta.noise_variance.tolist(),
+            "snr": (theta.signal_variance / theta.noise_variance).sqrt().tolist()}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    model.save(path)
+    info_path.write_text(json.dumps(info, indent=2) + "\n")
+    return path, {**info, "cached": False}
+
+
+def warm_up_optimisers() -> None:
+    """Pay torch.optim's one-off lazy import (torch._dynamo, ~1 s) here: in the loop the GP fit pays it first."""
+    dummy = torch.nn.Parameter(torch.zeros(1))
+    torch.optim.Adam([dummy])
+    torch.optim.LBFGS([dummy])
+
+
+def rollout_and_gradient(propagator: Any, start: Any, horizon: int) -> float:
+    """One rollout of H steps and the gradient of V w.r.t. ψ; returns V."""
+    propagator.policy.zero_grad()
+    value = propagator.expected_return(start, horizon)
+    value.backward()
+    return float(value.detach())
+
+
+def measure(job: dict[str, Any]) -> dict[str, Any]:
+    """Measure one (propagator, n, dtype) in this process; a failure is recorded, not raised."""
+    torch.set_num_threads(job["threads"])
+    result: dict[str, Any] = {key: job[key] for key in ("propagator", "n", "dtype")}
+    log_warnings = _WarningLog()
+    logging.getLogger("qtl").addHandler(log_warnings)
+    stage = "setup"
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            # -- Everything as qtl/loop.py makes it, from the composed config. -----------------------
+            cfg = compose_config(job["propagator"], job["dtype"], job["overrides"])
+            dtype = DTYPES[cfg.dtype]
+            seed_everything(cfg.seed)
+            task = make_task(cfg)
+            features = AngleFeatures(task.state_dim, task.angle_dims)
+            reward = ExpectedSaturatingReward.from_spec(task.reward)
+            start = task.start_distribution(dtype)
+            make_propagator = instantiate(cfg.propagation)
+            search = instantiate_checked(cfg.optimizer)
+            model = DynamicsGP.load(job["model"], dtype=dtype)
+            policy = initial_policy(cfg, task, features, dtype)
+            warm_up_optimisers()
+            result.update(horizon=task.horizon, propagation=OmegaConf.to_container(cfg.propagation, resolve=True),
+                          optimizer=OmegaConf.to_container(cfg.optimizer, resolve=True),
+                          setup_rss_mib=benchlib.peak_rss_mib())
+
+            # -- One rollout + gradient: a warm-up, then the median of the repeats. ------------------
+            stage = "rollout + gradient"
+            propagator = make_propagator(model, policy, reward, angle_dims=task.angle_dims)
+            result["value_initial"] = rollout_and_gradient(propagator, start, task.horizon)
+            times = []
+            for _ in range(job["repeats"]):
+                tic = time.perf_counter()
+                rollout_and_gradient(propagator, start, task.horizon)
+                times.append(time.perf_counter() - tic)
+            result.update(rollout_grad_s_median=statistics.median(times), rollout_grad_s_min=min(times),
+                          repeats=job["repeats"])
+
+            # -- One policy search, timed as the loop times it (lines 6-9). --------------------------
+            if not job["skip_search"]:
+                stage = "policy search"
+                tic = time.perf_counter()
+                propagator = make_propagator(model, policy, reward, angle_dims=task.angle_dims)
+                found = search(policy, functools.partial(propagator.expected_return, start, task.horizon),
+                               generator=torch_generator(cfg.seed, SEARCH_EPISODE, SEARCH_STREAM))
+                result.update(search_s=time.perf_counter() - tic, evaluations=found.evaluations,
+                              value_found=found.value, run_values=found.run_values)
+        except Exception as err:  # a benchmark records what failed and goes on
+            where = traceback.extract_tb(err.__traceback__)[-1]
+            origin = f"{Path(where.filename).name}:{where.lineno}"
+            result["error"] = f"{stage}: {type(err).__name__} at {origin}: {err}"
+        finally:
+            logging.getLogger("qtl").removeHandler(log_warnings)
+    seen = list(dict.fromkeys([*log_warnings.messages, *(f"{w.category.__name__}: {w.message}" for w in caught)]))
+    result["warnings"] = seen[:MAX_RECORDED_WARNINGS]
+    result["peak_rss_mib"] = benchlib.peak_rss_mib()
+    return result
+
+
+def run_job(job: dict[str, Any]) -> dict[str, Any]:
+    """Measure one configuration in a fresh subprocess; a crash is recorded as an error."""
+    done = subprocess.run([sys.executable, __file__, "--worker", json.dumps(job)], capture_output=True, text=True)
+    lines = done.stdout.strip().splitlines()
+    if done.returncode == 0 and lines:
+        return json.loads(lines[-1])
+    tail = done.stderr.strip().splitlines()[-5:]
+    return {key: job[key] for key in ("propagator", "n", "dtype")} | {
+        "error": f"worker exited with {done.returncode}: {' | '.join(tail)}"}
+
+
+def judge(result: dict[str, Any], judged: bool) -> tuple[str, str]:
+    """The target of a result's configuration and whether it was met."""
+    target = TARGETS.get((result["propagator"], result["n"]))
+    if target is None:
+        return "—", "—"
+    label = f"≤ {target:.0f} s ({TARGET_NOTES[result['propagator']]})"
+    if not judged:
+        return label, "not judged (settings overridden)"
+    if "search_s" not in result:
+        return label, "not measured"
+    return label, "met" if result["search_s"] <= target else "not met"
+
+
+def _seconds(result: dict[str, Any], key: str) -> str:
+    """A time in seconds for the table, or a dash where it was not measured."""
+    return f"{result[key]:.2f}" if key in result else "—"
+
+
+def settings_lines(results: list[dict[str, Any]]) -> list[str]:
+    """What each propagator ran with: horizon, propagation and optimiser settings of its first measured row."""
+    lines = []
+    for name in dict.fromkeys(r["propagator"] for r in results):
+        row = next((r for r in results if r["propagator"] == name and "optimizer" in r), None)
+        if row is not None:
+            settings = [f"{k}={v}" for k, v in {**row["propagation"], **row["optimizer"]}.items()
+                        if k not in ("_target_", "_partial_")]
+            lines.append(f"- {name}: H = {row['horizon']}, {', '.join(settings)}")
+    return lines
+
+
+def markdown(results: list[dict[str, Any]], info: dict[str, Any]) -> str:
+    """The section of docs/benchmarks.md."""
+    m = info["machine"]
+    settings = "the loop's settings" if info["judged"] else f"overridden settings ({', '.join(info['overrides_all'])})"
+    lines = [
+        "## Policy search: moment matching and particles",
+        "",
+        DESCRIPTION,
+        "",
+        f"`{info['command']}` — {info['date']}, {m['cpu']} ({m['cores']} cores), {info['threads']} torch threads, "
+        f"torch {m['torch']}, {settings}. Results: `{info['output']}`.",
+        "",
+        *settings_lines(results),
+        "",
+        "| propagator | n | dtype | rollout + gradient (s, median) | policy search (s) | evaluations | s / evaluation "
+        "| peak RSS (MiB) | target | met? |",
+        "| --- | ---: | --- | ---: | ---: | ---: | ---: | ---: | --- | --- |",
+    ]
+    errors = []
+    for r in results:
+        target, met = judge(r, info["judged"])
+        evals = str(r["evaluations"]) if "evaluations" in r else "—"
+        per_eval = f"{r['search_s'] / r['evaluations']:.3f}" if r.get("evaluations") else "—"
+        rss = f"{r['peak_rss_mib']:.0f}" if "peak_rss_mib" in r else "—"
+        if "error" in r:
+            errors.append(f"{len(errors) + 1}. {r['propagator']}, n = {r['n']}, {r['dtype']}: `{r['error']}`")
+            met = f"error ({len(errors)})"
+        lines.append(
+            f"| {r['propagator']} | {r['n']} | {r['dtype']} | {_seconds(r, 'rollout_grad_s_median')} | "
+            f"{_seconds(r, 'search_s')} | {evals} | {per_eval} | {rss} | {target} | {met} |"
+        )
+    if errors:
+        lines += ["", "Errors:", "", *errors]
+    lines += ["", "Quoted in issue 8 for context — not measured here, other machines:", ""]
+    lines += [f"- {ref}" for ref in QUOTED_REFERENCES]
+    return "\n".join(lines)
+
+
+def main() -> None:
+    """Fit (or load) one model per n, run every configuration in its own subprocess; write JSON and markdown."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--sizes", type=int, nargs="+", default=SIZES)
+    parser.add_argument("--dtypes", nargs="+", default=list(DTYPES), choices=list(DTYPES))
+    parser.add_argument("--propagators", nargs="+", default=list(PROPAGATORS), choices=list(PROPAGATORS))
+    parser.add_argument("--threads", type=int, default=2, help="torch threads of every measurement")
+    parser.add_argument("--repeats", type=int, default=3, help="timed rollouts + gradients after one warm-up")
+    parser.add_argument("--seed", type=int, default=0, help="of the data collection and the model fit")
+    parser.add_argument("--skip-search", action="store_true", help="only the rollout + gradient")
+    parser.add_argument("--overrides", nargs="*", default=[], help="Hydra overrides for every configuration")
+    parser.add_argument("--mm-overrides", nargs="*", default=[], help="Hydra overrides for moment matching only")
+    parser.add_argument("--particles-overrides", nargs="*", default=[], help="Hydra overrides for particles only")
+    parser.add_argument("--output", type=Path, default=DEFAULT_OUTPUT, help="JSON path")
+    parser.add_argument("--no-docs", action="store_true", help="do not write the section of docs/benchmarks.md")
+    parser.add_argument("--cache-dir", type=Path, default=CACHE_DIR, help="fitted models, one per n")
+    parser.add_argument("--worker", help=argparse.SUPPRESS)  # child process: one configuration, as JSON
+    args = parser.parse_args()
+    if args.worker:
+        print(json.dumps(measure(json.loads(args.worker))))
+        return
+
+    torch.set_num_threads(args.threads)
+    per_propagator = {"moment_matching": args.mm_overrides, "particles": args.particles_overrides}
+    data_cfg = compose_config("moment_matching", "float64", args.overrides)
+    results, models = [], {}
+    for n in args.sizes:
+        path, models[n] = ensure_model(data_cfg, n, args.seed, args.cache_dir)
+        how = "cached" if models[n]["cached"] else f"fitted in {models[n]['fit_s']:.1f} s"
+        print(f"n={n}: model {how} ({path.name})", file=sys.stderr, flush=True)
+        for propagator in args.propagators:
+            for dtype_name in args.dtypes:
+                job = {"propagator": propagator, "n": n, "dtype": dtype_name, "model": str(path),
+                       "overrides": [*args.overrides, *per_propagator[propagator]], "threads": args.threads,
+                       "repeats": args.repeats, "skip_search": args.skip_search}
+                results.append(run_job(job))
+                print(json.dumps({k: v for k, v in results[-1].items() if k not in ("propagation", "optimizer")}),
+                      file=sys.stderr, flush=True)
+
+    output = args.output.resolve()
+    overrides_all = [*args.overrides, *args.mm_overrides, *args.particles_overrides]
+    info = {
+        "date": benchlib.today(),
+        "command": benchlib.command_line(),
+        "machine": benchlib.machine(),
+        "threads": args.threads,
+        "output": str(output.relative_to(benchlib.ROOT)) if output.is_relative_to(benchlib.ROOT) else str(output),
+        "overrides_all": overrides_all,
+        "judged": not overrides_all and not args.skip_search,
+        "targets": [{"propagator": p, "n": n, "search_s_max": s, "what": TARGET_NOTES[p]} for (p, n), s in
+                    TARGETS.items()],
+        "quoted_references": QUOTED_REFERENCES,
+        "models": {str(n): m for n, m in models.items()},
+    }
+    for r in results:
+        r["target"], r["met"] = judge(r, info["judged"])
+    output.parent.mkdir(parents=True, exist_ok=True)
+    output.write_text(json.dumps({**info, "results": results}, indent=2) + "\n")
+    section = markdown(results, info)
+    if not args.no_docs:
+        benchlib.write_section(SECTION, section)
+    print(section)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,44 @@
+"""Smoke test of ``scripts/bench_policy_search.py``: its smallest configuration, writing nothing under docs/."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[2]
+SCRIPT = ROOT / "scripts" / "bench_policy_search.py"
+TINY = [
+    "--sizes", "60", "--dtypes", "float64", "--threads", "1", "--repeats", "1",
+    "--overrides", "task.env.horizon=10", "task.success.last_steps=3",
+    "--mm-overrides", "optimizer.max_iter=3", "optimizer.restarts=1",
+    "--particles-overrides", "optimizer.steps=3", "propagation.num_particles=20",
+]
+
+
+def test_smallest_configuration_measures_both_propagators_without_touching_docs(tmp_path: Path) -> None:
+    """Both propagators are timed at n = 60, the JSON goes to --output, docs/ stays as it was."""
+    docs = ROOT / "docs" / "benchmarks.md"
+    before = docs.read_bytes() if docs.exists() else None
+    output = tmp_path / "policy_search.json"
+    done = subprocess.run(
+        [sys.executable, str(SCRIPT), *TINY, "--output", str(output), "--cache-dir", str(tmp_path / "cache"),
+         "--no-docs"],
+        capture_output=True, text=True, timeout=120, env={**os.environ, "OMP_NUM_THREADS": "1"},
+    )
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert (docs.read_bytes() if docs.exists() else None) == before
+    report = json.loads(output.read_text())
+    assert [(r["propagator"], r["n"], r["dtype"]) for r in report["results"]] == [
+        ("moment_matching", 60, "float64"), ("particles", 60, "float64")]
+    for row in report["results"]:
+        assert "error" not in row, row["error"]
+        assert row["horizon"] == 10
+        assert row["rollout_grad_s_median"] > 0 and row["search_s"] > 0 and row["peak_rss_mib"] > 0
+        assert row["evaluations"] >= 3
+        assert row["met"] == "—"  # no target at n = 60
+    assert not report["judged"]
+    assert report["models"]["60"]["n"] == 60 and list((tmp_path / "cache").glob("*.pt"))
+    assert "## Policy search" in done.stdout and "not measured here" in done.stdout
