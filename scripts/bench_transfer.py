@@ -126,6 +126,9 @@ def main() -> None:
         "",
         f"**Required: QTL's median episodes to success below PILCO's — {verdict}.**",
         "",
+        f"A run that never succeeds counts as {budget} episodes (the budget) in the median: the median is then a lower "
+        "bound. Compliance is Λ of Eq. 14 for the tuples of the last learned episode's model (QTL runs only).",
+        "",
         "| approach | first success per seed | median episodes to success | solved | AUC | final performance "
         "| time to convergence | compliance (last episode) | policy search (s/episode) |",
         "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
