@@ -123,7 +123,11 @@ class Particles:
     the dynamics' angle dimensions. ``num_particles``: P. ``resample_every``: fresh base noise
     every this many calls of :meth:`expected_return` (0: never — a deterministic objective).
     ``include_noise``: add σ_ε² to the predictive variance of Δ (default; without it Δ is drawn
-    from the latent GP, as :class:`~qtl.propagation.MomentMatching` does by default). ``seed``:
+    from the latent GP, as :class:`~qtl.propagation.MomentMatching` does by default).
+    ``expected_reward``: score each step by E[r(x_t) | x_{t−1}], the expected reward under the
+    particle's Gaussian predictive N(x_{t−1} + m, diag v), instead of r at the drawn x_t — the same
+    expectation (Rao-Blackwellised; exact without angle dimensions, PILCO's moment-matched augmented
+    state with them), smooth in ψ where the drawn particles all score ~0. ``seed``:
     of the base noise. ``dtype``: of the propagation (default: the cache's); the policy must
     share it.
     """
@@ -138,6 +142,7 @@ class Particles:
         num_particles: int = 400,
         resample_every: int = 0,
         include_noise: bool = True,
+        expected_reward: bool = False,
         seed: int = 0,
         dtype: torch.dtype | None = None,
     ) -> None:
@@ -154,6 +159,7 @@ class Particles:
         self.num_particles = int(num_particles)
         self.resample_every = int(resample_every)
         self.include_noise = include_noise
+        self.expected_reward = bool(expected_reward)
         self.seed = int(seed)
         self.calls = 0  # evaluations of expected_return so far: they set the draw index
         self._noise: tuple[tuple[int, int], tuple[Tensor, Tensor]] | None = None
@@ -199,6 +205,11 @@ class Particles:
 
         ``draw``: the base noise to use (default: that of the latest evaluation).
         """
+        states, actions, _ = self._paths(start, horizon, draw)
+        return states, actions
+
+    def _paths(self, start: Gaussian, horizon: int, draw: int | None) -> tuple[Tensor, Tensor, Gaussian]:
+        """States, actions, and each step's predictive N(x_{t−1} + m, diag v) `... x P x H x D` per particle."""
         if start.dim != self.state_dim:
             raise ValueError(f"start must be a {self.state_dim}-D distribution, got {start.dim}-D")
         if horizon < 1:
@@ -208,7 +219,7 @@ class Particles:
         batch = torch.broadcast_shapes(start.batch_shape, self.model_batch_shape)
         x = start.mean[..., None, :] + start_noise @ _root(start.cov).mT  # x_0 = μ_0 + L_0 ε_0
         x = x.expand(*batch, self.num_particles, self.state_dim)
-        states, actions = [x], []
+        states, actions, means, variances = [x], [], [], []
         for t in range(horizon):
             y = self.features(x)  # ... x P x (D + K), exact per particle
             u = self.policy(y)  # ... x P x F
@@ -219,10 +230,16 @@ class Particles:
             if self.include_noise:
                 var = var + self._noise_variance[..., None]
             delta = mean + _safe_sqrt(var) * step_noise[t].mT  # Δ ~ N(m, v) reparameterised
+            if self.expected_reward:
+                means.append(x + mean.mT)
+                variances.append(var.mT)
             x = x + delta.mT
             states.append(x)
             actions.append(u)
-        return torch.stack(states, dim=-2), torch.stack(actions, dim=-2)
+        predictive = None
+        if self.expected_reward:
+            predictive = Gaussian(torch.stack(means, dim=-2), torch.diag_embed(torch.stack(variances, dim=-2)))
+        return torch.stack(states, dim=-2), torch.stack(actions, dim=-2), predictive
 
     def rollout(self, start: Gaussian, horizon: int, draw: int | None = None) -> Rollout:
         """H steps from N(μ_0, Σ_0); V = mean over particles of Σ_{t=1..H} r(x_t) (Eq. 4).
@@ -232,8 +249,11 @@ class Particles:
         does not count as an evaluation. A non-finite V raises
         :class:`~qtl.policy_search.NonFiniteObjective`.
         """
-        states, actions = self.trajectories(start, horizon, draw)
-        per_particle = self.reward(states[..., 1:, :])  # ... x P x H, successor states x_1..x_H
+        states, actions, predictive = self._paths(start, horizon, draw)
+        if self.expected_reward:
+            per_particle = self.reward.expected(predictive)  # ... x P x H, E[r(x_t) | x_{t−1}]
+        else:
+            per_particle = self.reward(states[..., 1:, :])  # ... x P x H, successor states x_1..x_H
         value = per_particle.sum(-1).mean(-1)
         if not torch.isfinite(value).all():
             finite = torch.isfinite(states).all(-1).flatten(end_dim=-2).all(0)  # H+1

@@ -275,3 +275,31 @@ def test_float32_propagation_agrees_with_float64(gp_factory):
     rollout = single.rollout(start, 5)
     assert rollout.value.dtype == torch.float32
     torch.testing.assert_close(rollout.value.double(), reference.value, rtol=1e-4, atol=1e-5)
+
+
+@pytest.mark.parametrize("include_noise", [False, True])
+def test_expected_reward_is_the_same_expectation_with_less_variance(gp_factory, include_noise):
+    # Without angles E[r(x_t) | x_{t−1}] is exact, so both estimators have the same mean over the
+    # particles' paths: compare at many particles within 5 combined standard errors.
+    gp, policy, reward = linear_parts(gp_factory)
+    start = Gaussian(torch.tensor([0.1, -0.2], dtype=DTYPE), 0.05 * torch.eye(2, dtype=DTYPE))
+    per_particle = {}
+    for expected in (False, True):
+        particles = Particles(gp, policy, reward, num_particles=20_000, include_noise=include_noise,
+                              expected_reward=expected, seed=5)
+        states, _, predictive = particles._paths(start, 3, None)
+        per_particle[expected] = (reward.expected(predictive) if expected else reward(states[..., 1:, :])).sum(-1)
+        value = particles.rollout(start, 3).value
+        torch.testing.assert_close(value, per_particle[expected].mean())
+    plain, smooth = per_particle[False], per_particle[True]
+    std_err = (plain.var() / plain.numel() + smooth.var() / smooth.numel()).sqrt()
+    assert (plain.mean() - smooth.mean()).abs() <= 5 * std_err
+    assert smooth.var() < plain.var()  # per step it cannot add variance; here the sum has less too
+
+
+def test_expected_reward_gradcheck(gp_factory):
+    gp, policy, reward = pendulum_parts(gp_factory, num_basis=3)
+    particles = Particles(gp, policy, reward, angle_dims=(1,), num_particles=6, include_noise=True,
+                          expected_reward=True, seed=2)
+    start = Gaussian(torch.tensor([0.1, 0.3, -0.2], dtype=DTYPE), 0.02 * torch.eye(3, dtype=DTYPE))
+    assert gradcheck_value_wrt_policy_and_start(policy, lambda s: particles.rollout(s, 2).value, start)
