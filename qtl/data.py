@@ -6,6 +6,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from qtl.features import AngleFeatures
+
 
 class TransitionDataset:
     """Episodes of real transitions, giving pairs (x_t, u_t) ↦ Δ_t = x_{t+1} − x_t (Section 3.3).
@@ -85,3 +87,9 @@ class TransitionDataset:
         except (KeyError, TypeError, ValueError) as err:
             raise ValueError(f"malformed TransitionDataset state: {err}") from err
         return data
+
+
+def gp_training_pairs(data: TransitionDataset, features: AngleFeatures, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
+    """Inputs [φ(x_t), u_t] `n x (D + K + F)` and targets Δ_t `n x D` (Section 3.3)."""
+    x, u, delta = data.tensors(dtype)
+    return torch.cat([features(x), u], dim=-1), delta

@@ -29,7 +29,7 @@ from qtl.checkpoint import (
     save_checkpoint,
     set_rng_state,
 )
-from qtl.data import TransitionDataset
+from qtl.data import TransitionDataset, gp_training_pairs
 from qtl.features import AngleFeatures
 from qtl.models import DynamicsGP, GPHyperparameters, SparseDynamicsGP
 from qtl.policies import Policy, SquashedPolicy
@@ -126,12 +126,6 @@ def policy_actor(policy: Policy, features: AngleFeatures, dtype: torch.dtype) ->
             return policy(features(torch.as_tensor(obs, dtype=dtype))).numpy()
 
     return act
-
-
-def gp_training_pairs(data: TransitionDataset, features: AngleFeatures, dtype: torch.dtype) -> tuple[torch.Tensor, ...]:
-    """Inputs [φ(x_t), u_t] `n x (D + K + F)` and targets Δ_t `n x D` (Section 3.3)."""
-    x, u, delta = data.tensors(dtype)
-    return torch.cat([features(x), u], dim=-1), delta
 
 
 def fit_dynamics(
@@ -304,9 +298,7 @@ def run(cfg: DictConfig, output_dir: Path, *, resume: bool = False) -> RunResult
                 save_checkpoint(output_dir, episode, {
                     "config": OmegaConf.to_yaml(cfg),
                     "dataset": data.state(),
-                    "theta": None if theta is None else {
-                        "lengthscales": theta.lengthscales, "signal_variance": theta.signal_variance,
-                        "noise_variance": theta.noise_variance},
+                    "theta": None if theta is None else theta.state_dict(),
                     "transfer": plan.state_dict(),
                     "policy": {k: v.detach().clone() for k, v in policy.state_dict().items()},
                     "metrics": recorder.rows,

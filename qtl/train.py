@@ -21,10 +21,14 @@ log = logging.getLogger(__name__)
 RESUME_OVERRIDABLE = frozenset({"episodes", "progress", "figure_every", "threads", "resume"})
 
 
+def stored_config(checkpoint: dict) -> DictConfig:
+    """A checkpoint's run configuration, checked against (and completed by) the schema."""
+    return OmegaConf.merge(OmegaConf.structured(TrainConfig), OmegaConf.create(checkpoint["config"]))
+
+
 def resume_config(run_dir: Path, overrides: list[str]) -> DictConfig:
     """The interrupted run's configuration, with the few keys a resume may change taken from ``overrides``."""
-    checkpoint = load_checkpoint(latest_checkpoint(run_dir))
-    cfg = OmegaConf.merge(OmegaConf.structured(TrainConfig), OmegaConf.create(checkpoint["config"]))
+    cfg = stored_config(load_checkpoint(latest_checkpoint(run_dir)))
     changes = []
     for override in overrides:
         key = override.lstrip("+~").partition("=")[0]
@@ -51,7 +55,7 @@ def auto_resume(run_dir: Path, cfg: DictConfig) -> DictConfig:
     except CheckpointError:
         cfg.resume = None
         return cfg
-    stored = OmegaConf.merge(OmegaConf.structured(TrainConfig), OmegaConf.create(checkpoint["config"]))
+    stored = stored_config(checkpoint)
     mine = {k: v for k, v in OmegaConf.to_container(cfg).items() if k not in RESUME_OVERRIDABLE}
     theirs = {k: v for k, v in OmegaConf.to_container(stored).items() if k not in RESUME_OVERRIDABLE}
     if mine != theirs:

@@ -73,3 +73,17 @@ def tiny_config(*overrides: str) -> DictConfig:
     register_configs()
     with initialize_config_module(config_module="qtl.configs", version_base="1.3"):
         return compose(config_name="train", overrides=[*TINY, *overrides])
+
+
+# The CLI's budget in end-to-end tests: one learned episode of 6 steps, a handful of evaluations.
+CLI_TINY = [
+    "episodes=1",
+    "task.env.horizon=6",
+    "task.success.last_steps=2",
+    "task.policy_size=4",
+    "optimizer.max_iter=2",
+    "optimizer.restarts=1",
+    "model.restarts=1",
+    "model.max_iter=3",
+    "threads=1",
+]

@@ -10,17 +10,7 @@ from pathlib import Path
 
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-TINY = [
-    "episodes=1",
-    "task.env.horizon=6",
-    "task.success.last_steps=2",
-    "task.policy_size=4",
-    "optimizer.max_iter=2",
-    "optimizer.restarts=1",
-    "model.restarts=1",
-    "model.max_iter=3",
-    "threads=1",
-]
+from tests.helpers import CLI_TINY as TINY
 
 
 def run_cli(args: list[str], cwd: Path) -> subprocess.CompletedProcess:

@@ -338,6 +338,10 @@ class DynamicsGP(gpytorch.models.ExactGP):
                 variances.append(dist.variance.T)
         return torch.cat(means), torch.cat(variances)
 
+    def exact(self) -> DynamicsGP:
+        """The exact GP of this data and θ: the model itself (a sparse model gives its exact twin)."""
+        return self
+
     def posterior_cache(self) -> GPPosteriorCache:
         """(K + σ_ε²I)⁻¹ and β = (K + σ_ε²I)⁻¹y per output, for prediction at uncertain inputs."""
         theta = self.hyperparameters

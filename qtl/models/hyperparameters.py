@@ -95,6 +95,11 @@ class GPHyperparameters:
             for i, name in enumerate(self.names())
         }
 
+    def state_dict(self) -> dict[str, Tensor]:
+        """The three tensors by field name (``GPHyperparameters(**state)`` rebuilds θ), for checkpoints."""
+        return {"lengthscales": self.lengthscales, "signal_variance": self.signal_variance,
+                "noise_variance": self.noise_variance}
+
     def to(self, dtype: torch.dtype | None = None, device: torch.device | str | None = None) -> GPHyperparameters:
         """The same θ on another dtype/device."""
         return GPHyperparameters(

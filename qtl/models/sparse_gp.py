@@ -27,7 +27,14 @@ from linear_operator.utils.cholesky import psd_safe_cholesky
 from linear_operator.utils.errors import NotPSDError
 from torch import Tensor
 
-from qtl.models.dynamics_gp import DynamicsGP, GPPosteriorCache, exact_gp_settings
+from qtl.models.dynamics_gp import (
+    DEFAULT_MAX_ITER,
+    DEFAULT_RESTARTS,
+    RESTART_LOG_SCALE,
+    DynamicsGP,
+    GPPosteriorCache,
+    exact_gp_settings,
+)
 from qtl.models.hyperparameters import GPHyperparameters
 
 log = logging.getLogger(__name__)
@@ -80,7 +87,13 @@ class SparseDynamicsGP(DynamicsGP):
         """Z `m x D`."""
         return self.covar_module.inducing_points.detach()
 
-    def fit(self, *, restarts: int = 3, max_iter: int = 100, generator: torch.Generator | None = None) -> Tensor:
+    def fit(
+        self,
+        *,
+        restarts: int = DEFAULT_RESTARTS,
+        max_iter: int = DEFAULT_MAX_ITER,
+        generator: torch.Generator | None = None,
+    ) -> Tensor:
         """Maximise the collapsed bound over θ and Z from the current θ and ``restarts − 1`` perturbations.
 
         Z is shared by the outputs, so the restart with the best total bound is kept whole (θ and Z).
@@ -93,7 +106,7 @@ class SparseDynamicsGP(DynamicsGP):
             log_theta = start_theta
             if attempt > 0:
                 noise = torch.randn(log_theta.shape, generator=generator, dtype=log_theta.dtype).to(log_theta.device)
-                log_theta = log_theta + 0.5 * noise
+                log_theta = log_theta + RESTART_LOG_SCALE * noise
             try:
                 self.hyperparameters = GPHyperparameters.from_log(log_theta)
                 with torch.no_grad():

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from qtl.models import DynamicsGP, SparseDynamicsGP
+from qtl.models import DynamicsGP
 
 # log(2π), the constant of a Gaussian log density.
 LOG_TWO_PI = math.log(2.0 * math.pi)
@@ -44,9 +44,7 @@ def _gaussian_log_density(y: Tensor, mean: Tensor, variance: Tensor) -> Tensor:
 
 def leave_one_out(model: DynamicsGP) -> tuple[Tensor, Tensor]:
     """Leave-one-out predictive means and variances `n x E` of the model's own training targets (Eq. 14)."""
-    if isinstance(model, SparseDynamicsGP):
-        model = model.exact()  # leave-one-out needs the n x n solve, not the inducing-point form
-    cache = model.posterior_cache()
+    cache = model.exact().posterior_cache()  # leave-one-out needs the n x n solve, not a sparse form
     precision = torch.diagonal(cache.K_inv, dim1=-2, dim2=-1)  # E x n, [K_y⁻¹]_ii
     mean = model.train_y - (cache.beta / precision).T  # n x E, y_i − [K_y⁻¹y]_i / [K_y⁻¹]_ii
     variance = precision.reciprocal().T  # n x E, 1 / [K_y⁻¹]_ii

@@ -113,7 +113,7 @@ class TransferPlan:
     def state_dict(self) -> dict[str, Any]:
         """θ_{i−1}, the rule's state and the gate's, for a checkpoint."""
         return {
-            "theta": None if self.theta is None else _theta_state(self.theta),
+            "theta": None if self.theta is None else self.theta.state_dict(),
             "rule": self.rule.state_dict(),
             "fallen_back": self.fallen_back,
         }
@@ -132,7 +132,3 @@ class TransferPlan:
         return (f"transfer of {' and '.join(what)} from {self.source.path} (episode {self.source.episode}, "
                 f"task {self.source.task.name}); rule {self.rule.describe()}")
 
-
-def _theta_state(theta: GPHyperparameters) -> dict[str, torch.Tensor]:
-    return {"lengthscales": theta.lengthscales, "signal_variance": theta.signal_variance,
-            "noise_variance": theta.noise_variance}

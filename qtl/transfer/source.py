@@ -11,7 +11,7 @@ from omegaconf import OmegaConf
 from torch import Tensor
 
 from qtl.checkpoint import CheckpointError, latest_checkpoint, load_checkpoint
-from qtl.data import TransitionDataset
+from qtl.data import TransitionDataset, gp_training_pairs
 from qtl.features import AngleFeatures
 from qtl.models import DynamicsGP, GPHyperparameters
 from qtl.task import Task, TaskError
@@ -95,9 +95,8 @@ class SourceRun:
 
     def model(self, features: AngleFeatures, dtype: torch.dtype = torch.float64) -> DynamicsGP:
         """The source GP: its own data with θ_s (no fitting), e.g. for task compliance (Eq. 14)."""
-        x, u, delta = self.dataset.tensors(dtype)
-        inputs = torch.cat([features(x), u], dim=-1)
-        return DynamicsGP(inputs, delta, hyperparameters=self.theta.to(dtype=dtype), dtype=dtype)
+        inputs, targets = gp_training_pairs(self.dataset, features, dtype)
+        return DynamicsGP(inputs, targets, hyperparameters=self.theta.to(dtype=dtype), dtype=dtype)
 
 
 def _stored_theta(checkpoint: dict) -> GPHyperparameters | None:

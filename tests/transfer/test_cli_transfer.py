@@ -9,18 +9,9 @@ from pathlib import Path
 
 import pytest
 
-TINY = [
-    "episodes=1",
-    "task.env.horizon=6",
-    "task.success.last_steps=2",
-    "task.policy_size=4",
-    "optimizer.max_iter=2",
-    "optimizer.restarts=1",
-    "model.restarts=1",
-    "model.max_iter=3",
-    "threads=1",
-    "progress=false",
-]
+from tests.helpers import CLI_TINY
+
+TINY = [*CLI_TINY, "progress=false"]
 
 
 def qtl(*args: str, cwd: Path) -> subprocess.CompletedProcess:
