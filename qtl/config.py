@@ -72,6 +72,7 @@ class TransferConfig:
     policy: bool = False
     min_compliance: Optional[float] = None  # noqa: UP045
     compliance_temperature: Optional[float] = None  # noqa: UP045
+    compliance_resolution: float = 0.0
 
 
 @dataclass

@@ -42,6 +42,7 @@ class TransferPlan:
         self.transfer_policy = bool(cfg.get("policy", False))
         self.min_compliance = cfg.get("min_compliance")
         self.temperature = cfg.get("compliance_temperature")
+        self.resolution = float(cfg.get("compliance_resolution") or 0.0)
         source_dir = cfg.get("source")
         if source_dir is None:
             if rule.uses_source:
@@ -65,6 +66,8 @@ class TransferPlan:
             raise TransferError(f"transfer.min_compliance must be in [0, 1], got {self.min_compliance}")
         if self.temperature is not None and not float(self.temperature) > 0:
             raise TransferError(f"transfer.compliance_temperature must be > 0, got {self.temperature}")
+        if not (math.isfinite(self.resolution) and self.resolution >= 0):
+            raise TransferError(f"transfer.compliance_resolution must be >= 0, got {self.resolution}")
         self._source_model = None if self.source is None else self.source.model(features, dtype)
         self.theta: GPHyperparameters | None = None  # θ_{i−1}: what the previous model used
         self.fallen_back = False  # the compliance gate switched this run to PILCO
@@ -89,7 +92,8 @@ class TransferPlan:
         """Task compliance Λ (Eq. 14) of the target model's tuples; NaN without a source."""
         if self._source_model is None:
             return math.nan
-        return task_compliance(self._source_model, target, temperature=self.temperature).value
+        return task_compliance(self._source_model, target, temperature=self.temperature,
+                               resolution=self.resolution).value
 
     def update(self, learned: GPHyperparameters, num_tuples: int, compliance: float = math.nan) -> GPHyperparameters:
         """θ of the next model: θ_0 = θ_s (line 2, Eq. 6), then the rule on θ_p (line 13); PILCO: θ_p."""

@@ -87,6 +87,26 @@ def test_larger_temperature_pulls_every_probability_toward_one_half(gp_factory) 
     assert distances[-1].max() < 0.5 * distances[0].max()
 
 
+def test_resolution_adds_the_documented_variance_floor(gp_factory) -> None:
+    source, target = gp_factory(40, 2, 1, seed=0), gp_factory(30, 2, 1, seed=1, lengthscale=1.0)
+    exact = task_compliance(source, target)
+    torch.testing.assert_close(task_compliance(source, target, resolution=0.0).probabilities, exact.probabilities,
+                               rtol=0, atol=0)
+    rho = 0.2
+    result = task_compliance(source, target, resolution=rho)
+    assert result.resolution == rho
+    floor = rho**2 * target.train_y.var(dim=0, correction=0)  # E: ρ² s_a²
+    mean, var = source.predict(target.train_x, include_noise=True)
+    log_source = torch.distributions.Normal(mean, (var + floor).sqrt()).log_prob(target.train_y).sum(-1)
+    loo_mean, loo_var = leave_one_out(target)
+    log_target = torch.distributions.Normal(loo_mean, (loo_var + floor).sqrt()).log_prob(target.train_y).sum(-1)
+    torch.testing.assert_close(result.log_source, log_source, rtol=1e-10, atol=1e-10)
+    torch.testing.assert_close(result.log_target, log_target, rtol=1e-10, atol=1e-10)
+    # A resolution far coarser than any prediction error cannot tell the hypotheses apart.
+    coarse = task_compliance(source, target, resolution=1e4)
+    assert (coarse.probabilities - 0.5).abs().max() < 1e-3
+
+
 # ---- input checks -------------------------------------------------------------------------------
 def _random_gp(n: int, input_dim: int, output_dim: int, seed: int) -> DynamicsGP:
     gen = torch.Generator().manual_seed(seed)
@@ -126,6 +146,14 @@ def test_bad_temperature_raises(monkeypatch, temperature: float) -> None:
     _forbid_work(monkeypatch)
     with pytest.raises(ValueError, match="temperature must be finite and > 0"):
         task_compliance(source, target, temperature=temperature)
+
+
+@pytest.mark.parametrize("resolution", [-0.1, float("nan"), float("inf")])
+def test_bad_resolution_raises(monkeypatch, resolution: float) -> None:
+    source, target = _random_gp(10, 3, 2, seed=0), _random_gp(10, 3, 2, seed=1)
+    _forbid_work(monkeypatch)
+    with pytest.raises(ValueError, match="resolution must be finite and >= 0"):
+        task_compliance(source, target, resolution=resolution)
 
 
 # ---- mountain car: same system vs 300 % engine power ------------------------------------------

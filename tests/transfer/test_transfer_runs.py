@@ -103,6 +103,7 @@ def test_bad_transfer_configs_fail_before_any_work(tmp_path, overrides, message)
         ([], "rule=none ignores θ_s"),
         (["rule=forgetting", "transfer.hyperparameters=false"], "rule=forgetting updates θ_s, but"),
         (["approach=qtl_bayesian", "transfer.min_compliance=1.5"], r"min_compliance must be in \[0, 1\]"),
+        (["approach=qtl_bayesian", "transfer.compliance_resolution=-0.1"], "compliance_resolution must be >= 0"),
         (["approach=policy_transfer", "task.policy_size=4"], "the source policy"),
     ],
 )
