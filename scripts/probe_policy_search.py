@@ -1,0 +1,102 @@
+"""Re-run one policy search on a finished run's data, with other settings, and try the result on the real system.
+
+A diagnostic for a run that stopped improving: the model is refitted on the run's data (its last checkpoint
+or ``--checkpoint``) with the run's model settings, the search starts from the run's last policy (or from a
+fresh ψ_0 with ``--fresh``) and uses the run's config with the given Hydra overrides (e.g.
+``propagation=moment_matching``, ``optimizer=adam optimizer.steps=400``). Printed: the predicted return
+before and after, each search run's best value, evaluations, wall time, and the returns of ``--episodes``
+real episodes of the found policy (their success by the task's test).
+
+    .venv/bin/python scripts/probe_policy_search.py RUN_DIR [--checkpoint PATH] [--fresh] [--episodes 3]
+        [--threads 1] [--seed 0] [OVERRIDE ...]
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import json
+import time
+from pathlib import Path
+
+import torch
+from hydra.utils import instantiate
+from omegaconf import DictConfig, OmegaConf
+
+from qtl.checkpoint import latest_checkpoint, load_checkpoint
+from qtl.data import TransitionDataset
+from qtl.features import AngleFeatures
+from qtl.loop import (
+    DTYPES,
+    fit_dynamics,
+    initial_policy,
+    instantiate_checked,
+    policy_actor,
+    run_episode,
+    torch_generator,
+)
+from qtl.rewards import ExpectedSaturatingReward
+from qtl.task import Task
+
+EVALUATION_SEED = 100  # real episodes use env seeds 100, 101, ...: not the run's own
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+GROUPS = ("propagation", "optimizer")  # `group=choice` replaces the whole node, as on the CLI
+
+
+def with_overrides(cfg: DictConfig, overrides: list[str]) -> DictConfig:
+    """The run's config with ``group=choice`` (propagation, optimizer) and then ``key=value`` overrides."""
+    rest = []
+    for override in overrides:
+        key, _, value = override.partition("=")
+        if key in GROUPS:
+            cfg[key] = OmegaConf.load(CONFIGS / key / f"{value}.yaml")
+        else:
+            rest.append(override)
+    return OmegaConf.merge(cfg, OmegaConf.from_dotlist(rest))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("run_dir", type=Path)
+    parser.add_argument("--checkpoint", type=Path, help="default: the run's latest")
+    parser.add_argument("--fresh", action="store_true", help="start from a fresh ψ_0, not the run's policy")
+    parser.add_argument("--episodes", type=int, default=3, help="real episodes of the found policy")
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--seed", type=int, default=0, help="of the model fit and the search's restarts")
+    args, overrides = parser.parse_known_args()
+    torch.set_num_threads(args.threads)
+
+    checkpoint = load_checkpoint(args.checkpoint or latest_checkpoint(args.run_dir))
+    cfg = with_overrides(OmegaConf.create(checkpoint["config"]), overrides)
+    dtype = DTYPES[cfg.dtype]
+    task = Task.from_config(OmegaConf.to_container(cfg.task, resolve=True))
+    features = AngleFeatures(task.state_dim, task.angle_dims)
+    data = TransitionDataset.from_state(checkpoint["dataset"])
+    model = fit_dynamics(data, features, cfg.model, torch_generator(args.seed, 0, 0), dtype)
+    policy = initial_policy(cfg, task, features, dtype)
+    if not args.fresh:
+        policy.load_state_dict(checkpoint["policy"])
+    reward = ExpectedSaturatingReward.from_spec(task.reward)
+    start = task.start_distribution(dtype)
+    propagator = instantiate(cfg.propagation)(model, policy, reward, angle_dims=task.angle_dims)
+    search = instantiate_checked(cfg.optimizer)
+    with torch.no_grad():
+        before = float(propagator.expected_return(start, task.horizon))
+    tic = time.perf_counter()
+    found = search(policy, functools.partial(propagator.expected_return, start, task.horizon),
+                   generator=torch.Generator().manual_seed(args.seed))
+    seconds = time.perf_counter() - tic
+    env = task.make_env()
+    real = []
+    for k in range(args.episodes):
+        episode = run_episode(env, task, policy_actor(policy, features, dtype), EVALUATION_SEED + k)
+        real.append({"return": round(float(episode.rewards.sum()), 2), "success": bool(task.succeeded(episode.states))})
+    env.close()
+    print(json.dumps({"run": str(args.run_dir), "episode": checkpoint["episode"], "n": len(data),
+                      "overrides": overrides, "fresh": args.fresh, "predicted_before": round(before, 2),
+                      "predicted_after": round(found.value, 2), "run_values": [round(v, 2) for v in found.run_values],
+                      "evaluations": found.evaluations, "search_s": round(seconds, 1), "real": real}))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,59 @@
+"""``scripts/compliance.py`` and ``scripts/probe_policy_search.py`` on tiny finished runs, as subprocesses."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from qtl.features import AngleFeatures
+from qtl.loop import run
+from qtl.transfer.compliance import task_compliance
+from qtl.transfer.source import SourceRun
+from tests.helpers import tiny_config
+
+ROOT = Path(__file__).resolve().parents[2]
+ENV = {**os.environ, "OMP_NUM_THREADS": "1"}
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory) -> tuple[Path, Path]:
+    """A finished 0.5 kg run and a finished 2.0 kg run, two learned episodes each."""
+    source, target = tmp_path_factory.mktemp("source"), tmp_path_factory.mktemp("target")
+    run(tiny_config("episodes=2", "seed=3"), source)
+    run(tiny_config("episodes=2", "seed=4", "task.env.pole_mass=2.0"), target)
+    return source, target
+
+
+def script(name: str, *args: str) -> subprocess.CompletedProcess:
+    done = subprocess.run([sys.executable, str(ROOT / "scripts" / name), *args], capture_output=True, text=True,
+                          timeout=300, env=ENV, cwd=ROOT)
+    assert done.returncode == 0, done.stderr[-3000:]
+    return done
+
+
+def test_compliance_script_equals_the_library_at_each_resolution(runs, tmp_path) -> None:
+    source_dir, target_dir = runs
+    output = tmp_path / "compliance.json"
+    done = script("compliance.py", str(source_dir), str(target_dir), "--resolution", "0", "0.1", "--json", str(output))
+    assert "Λ, ρ = 0.1" in done.stdout
+    row = json.loads(output.read_text())["targets"][0]
+    source, target = SourceRun.load(source_dir), SourceRun.load(target_dir)
+    features = AngleFeatures(source.task.state_dim, source.task.angle_dims)
+    for rho in (0.0, 0.1):
+        expected = task_compliance(source.model(features), target.model(features), resolution=rho).value
+        assert row["compliance"][str(rho)] == pytest.approx(expected, abs=1e-12)
+
+
+def test_probe_reruns_the_last_search_with_other_settings(runs) -> None:
+    source_dir, _ = runs
+    done = script("probe_policy_search.py", str(source_dir), "--episodes", "1", "propagation=particles",
+                  "propagation.num_particles=10", "optimizer=adam", "optimizer.steps=2")
+    report = json.loads(done.stdout.strip().splitlines()[-1])
+    assert report["episode"] == 2 and report["evaluations"] == 2
+    assert report["overrides"][0] == "propagation=particles"
+    assert len(report["real"]) == 1 and report["real"][0]["return"] >= 0
