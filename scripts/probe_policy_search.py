@@ -49,7 +49,11 @@ def with_overrides(cfg: DictConfig, overrides: list[str]) -> DictConfig:
     for override in overrides:
         key, _, value = override.partition("=")
         if key in GROUPS:
-            cfg[key] = OmegaConf.load(CONFIGS / key / f"{value}.yaml")
+            path = CONFIGS / key / f"{value}.yaml"
+            if not path.is_file():
+                choices = sorted(p.stem for p in (CONFIGS / key).glob("*.yaml"))
+                raise SystemExit(f"unknown {key}={value!r}: choose one of {choices}")
+            cfg[key] = OmegaConf.load(path)
         else:
             rest.append(override)
     return OmegaConf.merge(cfg, OmegaConf.from_dotlist(rest))
