@@ -265,6 +265,7 @@ def test_config_builds_particles_seeded_by_the_run(gp_factory):
     built = instantiate(cfg.propagation)(gp, policy, reward, angle_dims=(1,))
     assert isinstance(built, Particles)
     assert (built.seed, built.num_particles, built.resample_every, built.include_noise) == (11, 400, 0, True)
+    assert built.expected_reward  # the loop's default: the Rao-Blackwellised reward
 
 
 def test_float32_propagation_agrees_with_float64(gp_factory):
