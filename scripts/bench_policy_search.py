@@ -14,7 +14,7 @@ policy search timed as the loop times it (propagator construction + search). Wri
 ``docs/bench/policy_search.json``) and, unless ``--no-docs``, its section of ``docs/benchmarks.md``.
 
     .venv/bin/python scripts/bench_policy_search.py [--sizes 250 500 1000] [--dtypes float64 float32]
-        [--propagators moment_matching particles] [--threads 2] [--repeats 3] [--skip-search]
+        [--propagators moment_matching particles] [--threads 2] [--repeats 3] [--skip-search | --search-at-targets]
         [--overrides OVERRIDE ...] [--mm-overrides OVERRIDE ...] [--particles-overrides OVERRIDE ...]
         [--output PATH] [--no-docs] [--cache-dir DIR]
 """
@@ -365,6 +365,8 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3, help="timed rollouts + gradients after one warm-up")
     parser.add_argument("--seed", type=int, default=0, help="of the data collection and the model fit")
     parser.add_argument("--skip-search", action="store_true", help="only the rollout + gradient")
+    parser.add_argument("--search-at-targets", action="store_true",
+                        help="time the policy search only where issue 8 sets a target (rollout + gradient everywhere)")
     parser.add_argument("--overrides", nargs="*", default=[], help="Hydra overrides for every configuration")
     parser.add_argument("--mm-overrides", nargs="*", default=[], help="Hydra overrides for moment matching only")
     parser.add_argument("--particles-overrides", nargs="*", default=[], help="Hydra overrides for particles only")
@@ -389,7 +391,8 @@ def main() -> None:
             for dtype_name in args.dtypes:
                 job = {"propagator": propagator, "n": n, "dtype": dtype_name, "model": str(path),
                        "overrides": [*args.overrides, *per_propagator[propagator]], "threads": args.threads,
-                       "repeats": args.repeats, "skip_search": args.skip_search}
+                       "repeats": args.repeats,
+                       "skip_search": args.skip_search or (args.search_at_targets and (propagator, n) not in TARGETS)}
                 results.append(run_job(job))
                 print(json.dumps({k: v for k, v in results[-1].items() if k not in ("propagation", "optimizer")}),
                       file=sys.stderr, flush=True)
