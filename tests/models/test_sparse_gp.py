@@ -42,6 +42,22 @@ def test_inducing_inputs_at_the_training_inputs_give_the_exact_gp(exact, twin):
     torch.testing.assert_close(twin.hyperparameters.natural(), exact.hyperparameters.natural(), rtol=1e-12, atol=0)
 
 
+def test_structured_evidence_equals_the_dense_cholesky_evidence(exact):
+    # The O(n m²) bound against GPyTorch's dense n x n Cholesky of the same SGPR covariance, with
+    # fewer inducing inputs than points (so the trace term is not 0): values and θ-gradients.
+    sparse = SparseDynamicsGP(exact.train_x, exact.train_y, exact.hyperparameters, num_inducing=12,
+                              generator=torch.Generator().manual_seed(4))
+    sparse.train()
+    fast = sparse.log_evidence()
+    fast_grads = torch.autograd.grad(fast.sum(), list(sparse.parameters()))
+    dense = DynamicsGP.log_evidence(sparse)  # the base class's evaluation: exact_gp_settings, dense Cholesky
+    dense_grads = torch.autograd.grad(dense.sum(), list(sparse.parameters()))
+    sparse.eval()
+    torch.testing.assert_close(fast, dense, rtol=1e-10, atol=1e-12)
+    for got, want in zip(fast_grads, dense_grads, strict=True):
+        torch.testing.assert_close(got, want, rtol=1e-8, atol=1e-10)
+
+
 def test_moment_matching_through_the_sparse_cache_equals_the_exact(exact, twin):
     gen = torch.Generator().manual_seed(5)
     state = Gaussian(0.3 * torch.randn(6, generator=gen, dtype=DTYPE), 0.2 * torch.eye(6, dtype=DTYPE))
