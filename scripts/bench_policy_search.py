@@ -404,7 +404,7 @@ def main() -> None:
         "command": benchlib.command_line(),
         "machine": benchlib.machine(),
         "threads": args.threads,
-        "output": str(output.relative_to(benchlib.ROOT)) if output.is_relative_to(benchlib.ROOT) else str(output),
+        "output": benchlib.display_path(output),
         "overrides_all": overrides_all,
         "judged": not overrides_all and not args.skip_search,
         "targets": [{"propagator": p, "n": n, "search_s_max": s, "what": TARGET_NOTES[p]} for (p, n), s in
@@ -414,8 +414,7 @@ def main() -> None:
     }
     for r in results:
         r["target"], r["met"] = judge(r, info["judged"])
-    output.parent.mkdir(parents=True, exist_ok=True)
-    output.write_text(json.dumps({**info, "results": results}, indent=2) + "\n")
+    benchlib.write_results(output, info, results)
     section = markdown(results, info)
     if not args.no_docs:
         benchlib.write_section(SECTION, section)

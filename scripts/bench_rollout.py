@@ -187,9 +187,8 @@ def main() -> None:
             print(json.dumps(results[-1]), file=sys.stderr)
     output = args.output or BENCH_DIR / ("rollout_dense.json" if args.dense else "rollout.json")
     info = {"date": benchlib.today(), "command": benchlib.command_line(), "machine": benchlib.machine(),
-            "output": str(output.relative_to(benchlib.ROOT)) if output.is_relative_to(benchlib.ROOT) else str(output)}
-    output.parent.mkdir(parents=True, exist_ok=True)
-    output.write_text(json.dumps({**info, "results": results}, indent=2) + "\n")
+            "output": benchlib.display_path(output)}
+    benchlib.write_results(output, info, results)
     section = markdown(results, info, args.dense)
     benchlib.write_section("bench_rollout_dense" if args.dense else "bench_rollout", section)
     print(section)

@@ -107,9 +107,8 @@ def main() -> None:
     output = args.output.resolve()
     info = {"date": benchlib.today(), "command": benchlib.command_line(), "machine": benchlib.machine(),
             "threads": args.threads, "restarts": args.restarts, "overrides": args.overrides,
-            "output": str(output.relative_to(benchlib.ROOT)) if output.is_relative_to(benchlib.ROOT) else str(output)}
-    output.parent.mkdir(parents=True, exist_ok=True)
-    output.write_text(json.dumps({**info, "results": results}, indent=2) + "\n")
+            "output": benchlib.display_path(output)}
+    benchlib.write_results(output, info, results)
     section = markdown(results, info)
     if not args.no_docs:
         benchlib.write_section(SECTION, section)

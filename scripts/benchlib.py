@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import datetime as dt
+import json
 import os
 import platform
 import re
@@ -54,6 +55,17 @@ def command_line() -> str:
     except ValueError:
         pass
     return " ".join(["python", str(script), *sys.argv[1:]])
+
+
+def display_path(path: Path) -> str:
+    """``path`` relative to the repository root when it lies inside it, else as given."""
+    return str(path.relative_to(ROOT)) if path.is_relative_to(ROOT) else str(path)
+
+
+def write_results(path: Path, info: dict, results: list) -> None:
+    """The machine-readable results: ``info`` and ``results`` as indented JSON, parent folders made."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps({**info, "results": results}, indent=2) + "\n")
 
 
 def write_section(name: str, markdown: str) -> None:

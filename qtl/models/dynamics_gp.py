@@ -247,10 +247,14 @@ class DynamicsGP(gpytorch.models.ExactGP):
 
     # -- evidence maximisation ---------------------------------------------------------------
 
+    def evidence_settings(self) -> contextlib.AbstractContextManager[None]:
+        """The GPyTorch settings of :meth:`log_evidence`: exact Cholesky solves and log-determinants."""
+        return exact_gp_settings()
+
     def log_evidence(self) -> Tensor:
         """Per-output log marginal likelihood plus log priors, divided by n: `E`."""
         mll = gpytorch.mlls.ExactMarginalLogLikelihood(self.likelihood, self)
-        with exact_gp_settings():
+        with self.evidence_settings():
             return mll(self(*self.train_inputs), self.train_targets)
 
     def fit(

@@ -18,8 +18,10 @@ O(m²) per step. With Z = X the model is the exact GP.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
+from collections.abc import Iterator
 
 import gpytorch
 import torch
@@ -42,6 +44,17 @@ log = logging.getLogger(__name__)
 
 # Inducing inputs by default (PILCO's FITC uses about 300 pseudo-inputs).
 DEFAULT_INDUCING = 300
+
+
+@contextlib.contextmanager
+def _structured_settings() -> Iterator[None]:
+    """Exact Cholesky solves, but GPyTorch's structured log-density (Woodbury) for the evidence."""
+    with (
+        gpytorch.settings.max_cholesky_size(EXACT_CHOLESKY_SIZE),
+        gpytorch.settings.fast_computations(covar_root_decomposition=False, log_prob=True, solves=False),
+        gpytorch.settings.fast_pred_var(False),
+    ):
+        yield
 
 
 class SparseDynamicsGP(DynamicsGP):
@@ -83,19 +96,13 @@ class SparseDynamicsGP(DynamicsGP):
         kernel = self.covar_module
         return kernel.base_kernel if isinstance(kernel, gpytorch.kernels.InducingPointKernel) else kernel
 
-    def log_evidence(self) -> Tensor:
-        """Per-output collapsed bound (Titsias 2009) plus log priors, divided by n: `E`, in O(n m²).
+    def evidence_settings(self) -> contextlib.AbstractContextManager[None]:
+        """Exact, structured evaluation of the collapsed bound (Titsias 2009) in O(n m²).
 
-        GPyTorch's structured log-density of the low-rank-plus-diagonal covariance (Woodbury and the
-        `m x m` capacitance Cholesky): the same value as the dense `n x n` Cholesky, which costs O(n³).
+        GPyTorch's log-density of the low-rank-plus-diagonal covariance (Woodbury and the `m x m`
+        capacitance Cholesky): the same value as the dense `n x n` Cholesky, which costs O(n³).
         """
-        mll = gpytorch.mlls.ExactMarginalLogLikelihood(self.likelihood, self)
-        with (
-            gpytorch.settings.max_cholesky_size(EXACT_CHOLESKY_SIZE),
-            gpytorch.settings.fast_computations(covar_root_decomposition=False, log_prob=True, solves=False),
-            gpytorch.settings.fast_pred_var(False),
-        ):
-            return mll(self(*self.train_inputs), self.train_targets)
+        return _structured_settings()
 
     @property
     def inducing_points(self) -> Tensor:
