@@ -118,12 +118,32 @@ def random_actor(task: Task, rng: np.random.Generator) -> Callable[[np.ndarray],
     return lambda _obs: rng.uniform(-task.action_bound, task.action_bound)
 
 
-def policy_actor(policy: Policy, features: AngleFeatures, dtype: torch.dtype) -> Callable[[np.ndarray], np.ndarray]:
-    """u = π(φ(x)) on a real observation (Algorithm 1, line 11)."""
+def resolve_device(name: str) -> torch.device:
+    """The torch device of ``cfg.device`` ("cpu", "cuda" or "cuda:N"), checked to exist on this machine."""
+    try:
+        device = torch.device(name)
+    except RuntimeError as err:
+        raise ValueError(f"device={name!r} is not a torch device: choose cpu, cuda or cuda:N ({err})") from None
+    if device.type == "cpu":
+        return device
+    if device.type != "cuda":
+        raise ValueError(f"device={name!r}: qtl runs on cpu or cuda (cuda:N), not {device.type}")
+    if not torch.cuda.is_available():
+        raise ValueError(f"device={name!r}, but torch {torch.__version__} sees no CUDA GPU on this machine "
+                         "(torch.cuda.is_available() is False): use device=cpu, or a CUDA build of torch")
+    if device.index is not None and device.index >= torch.cuda.device_count():
+        raise ValueError(f"device={name!r}, but this machine has {torch.cuda.device_count()} CUDA device(s)")
+    return device
+
+
+def policy_actor(
+    policy: Policy, features: AngleFeatures, dtype: torch.dtype, device: torch.device | str = "cpu"
+) -> Callable[[np.ndarray], np.ndarray]:
+    """u = π(φ(x)) on a real observation (Algorithm 1, line 11); the action back on the CPU as numpy."""
 
     def act(obs: np.ndarray) -> np.ndarray:
         with torch.no_grad():
-            return policy(features(torch.as_tensor(obs, dtype=dtype))).numpy()
+            return policy(features(torch.as_tensor(obs, dtype=dtype, device=device))).cpu().numpy()
 
     return act
 
@@ -135,12 +155,14 @@ def fit_dynamics(
     generator: torch.Generator,
     dtype: torch.dtype,
     start: GPHyperparameters | None = None,
+    device: torch.device | str = "cpu",
 ) -> DynamicsGP:
     """Learn θ_p by evidence maximisation on all tuples (line 12), from ``start`` or PILCO's heuristic.
 
     Above ``cfg.sparse_above`` tuples the model is the sparse GP with ``cfg.inducing`` inducing inputs.
+    The model lives on ``device`` (that of its training tuples).
     """
-    inputs, targets = gp_training_pairs(data, features, dtype)
+    inputs, targets = (t.to(device) for t in gp_training_pairs(data, features, dtype))
     if cfg.get("sparse_above") is not None and len(inputs) > cfg.sparse_above:
         log.info("%d tuples > model.sparse_above=%d: the sparse GP, %d inducing inputs", len(inputs),
                  cfg.sparse_above, min(cfg.inducing, len(inputs)))
@@ -165,7 +187,7 @@ def one_step_smse(model: DynamicsGP, episode: Episode, features: AngleFeatures, 
     """Model fit quality: one-step prediction error on an episode it has not seen, over target variance."""
     data = TransitionDataset(episode.states.shape[1], episode.actions.shape[1])
     data.add_episode(episode.states, episode.actions)
-    inputs, targets = gp_training_pairs(data, features, dtype)
+    inputs, targets = (t.to(model.train_x.device) for t in gp_training_pairs(data, features, dtype))
     mean, _ = model.predict(inputs)
     mse = ((mean - targets) ** 2).mean(0)
     return float((mse / model.train_y.var(0)).mean())
@@ -182,8 +204,7 @@ def run(cfg: DictConfig, output_dir: Path, *, resume: bool = False) -> RunResult
     """Algorithm 1: learn the task of ``cfg`` in ``output_dir``, from a source run when ``cfg.transfer`` names one."""
     # -- Check everything before any work: task, env, spaces, resume point. -----------------------
     dtype = DTYPES[cfg.dtype]
-    if cfg.device != "cpu":
-        raise ValueError(f"device={cfg.device!r}: this version of the loop runs on the CPU only (device=cpu)")
+    device = resolve_device(cfg.device)
     task = Task.from_config(OmegaConf.to_container(cfg.task, resolve=True))
     if resume:
         checkpoint = load_checkpoint(latest_checkpoint(output_dir))
@@ -199,14 +220,15 @@ def run(cfg: DictConfig, output_dir: Path, *, resume: bool = False) -> RunResult
         torch.set_num_threads(cfg.threads)
     features = AngleFeatures(task.state_dim, task.angle_dims)
     reward = ExpectedSaturatingReward.from_spec(task.reward)
-    start = task.start_distribution(dtype)
+    start = task.start_distribution(dtype).to(device=device)
     make_propagator = instantiate(cfg.propagation)
     search = instantiate_checked(cfg.optimizer)
-    plan = TransferPlan(cfg.transfer, instantiate_checked(cfg.rule), task, features, dtype)  # source loaded and checked
+    plan = TransferPlan(cfg.transfer, instantiate_checked(cfg.rule), task, features, dtype,
+                        device)  # source loaded and checked
     total = cfg.random_episodes + cfg.episodes
 
     # -- Lines 1-2: π ← π(ψ_s) when ψ_s is transferred (else PILCO's ψ_0); θ_s waits for the first model.
-    policy = initial_policy(cfg, task, features, dtype)
+    policy = initial_policy(cfg, task, features, dtype).to(device)
     plan.initial_policy(policy)
     data = TransitionDataset(task.state_dim, task.action_dim)
     rows: list[dict[str, Any]] = []
@@ -238,7 +260,7 @@ def run(cfg: DictConfig, output_dir: Path, *, resume: bool = False) -> RunResult
                 if episode < cfg.random_episodes:
                     # -- Line 3: interact with the environment: π(ψ_s) if transferred, else random actions.
                     if plan.transfer_policy:
-                        actor, kind = policy_actor(policy, features, dtype), "source_policy"
+                        actor, kind = policy_actor(policy, features, dtype, device), "source_policy"
                     else:
                         rng = np.random.default_rng(derive_seed(cfg.seed, episode, ACTION_STREAM))
                         actor, kind = random_actor(task, rng), "random"
@@ -249,7 +271,7 @@ def run(cfg: DictConfig, output_dir: Path, *, resume: bool = False) -> RunResult
                     # -- Line 12: learn θ_p from all tuples (evidence maximisation). ---------------
                     tic = time.perf_counter()
                     model = fit_dynamics(data, features, cfg.model, torch_generator(cfg.seed, episode, MODEL_STREAM),
-                                         dtype, start=plan.fit_start())
+                                         dtype, start=plan.fit_start(), device=device)
                     theta_p = model.hyperparameters
                     compliance = plan.compliance(model)  # Eq. 14 (NaN without a source)
                     # -- Lines 2, 13 and 5: θ_0 = θ_s, then the updating rule; f inferred with θ. --
@@ -269,7 +291,7 @@ def run(cfg: DictConfig, output_dir: Path, *, resume: bool = False) -> RunResult
                     search_s = time.perf_counter() - tic
 
                     # -- Lines 10-11: apply π(ψ) on the real system to obtain more tuples. ---------
-                    actor = policy_actor(policy, features, dtype)
+                    actor = policy_actor(policy, features, dtype, device)
                     real = run_episode(env, task, actor, derive_seed(cfg.seed, episode, ENV_STREAM))
                     row.update(
                         kind="policy",
@@ -298,9 +320,9 @@ def run(cfg: DictConfig, output_dir: Path, *, resume: bool = False) -> RunResult
                 save_checkpoint(output_dir, episode, {
                     "config": OmegaConf.to_yaml(cfg),
                     "dataset": data.state(),
-                    "theta": None if theta is None else theta.state_dict(),
+                    "theta": None if theta is None else theta.to(device="cpu").state_dict(),
                     "transfer": plan.state_dict(),
-                    "policy": {k: v.detach().clone() for k, v in policy.state_dict().items()},
+                    "policy": {k: v.detach().cpu().clone() for k, v in policy.state_dict().items()},
                     "metrics": recorder.rows,
                     "timings": recorder.timings,
                 })
@@ -339,7 +361,7 @@ def _prediction_figure(propagator: Any, start: Any, task: Task, real: Episode, e
     except (NonFiniteObjective, torch.linalg.LinAlgError) as err:
         log.warning("no prediction figure for episode %d: the predicted rollout broke down (%s)", episode, err)
         return None
-    mean = predicted.mean.numpy()
-    std = torch.diagonal(predicted.cov, dim1=-2, dim2=-1).clamp_min(0).sqrt().numpy()
+    mean = predicted.mean.cpu().numpy()
+    std = torch.diagonal(predicted.cov, dim1=-2, dim2=-1).clamp_min(0).sqrt().cpu().numpy()
     return trajectory_figure(mean, std, real.states, f"episode {episode}: predicted vs real")
 

@@ -18,7 +18,7 @@ from qtl.loop import DTYPES, RunResult, run
 log = logging.getLogger(__name__)
 
 # What a resumed run may change of the interrupted run's configuration.
-RESUME_OVERRIDABLE = frozenset({"episodes", "progress", "figure_every", "threads", "resume"})
+RESUME_OVERRIDABLE = frozenset({"episodes", "progress", "figure_every", "threads", "device", "resume"})
 
 
 def stored_config(checkpoint: dict) -> DictConfig:
@@ -48,7 +48,7 @@ def auto_resume(run_dir: Path, cfg: DictConfig) -> DictConfig:
     """``resume=auto`` (sweeps): continue the run in ``run_dir`` if it holds one of this config, else start it.
 
     A run of another configuration in ``run_dir`` is an error; only the keys a resume may change
-    (``episodes``, ``progress``, ``figure_every``, ``threads``) may differ, and take ``cfg``'s values.
+    (``episodes``, ``progress``, ``figure_every``, ``threads``, ``device``) may differ, and take ``cfg``'s values.
     """
     try:
         checkpoint = load_checkpoint(latest_checkpoint(run_dir))

@@ -10,11 +10,13 @@ resident memory is its own: the default ``train`` config composed with the propa
 propagator, optimiser, initial policy, start distribution, horizon and reward made exactly as
 ``qtl/loop.py`` makes them, and the model loaded in the run's dtype. Measured: the median of
 ``--repeats`` rollouts + gradients (``expected_return(...).backward()``) after one warm-up, and one
-policy search timed as the loop times it (propagator construction + search). Writes JSON (default
-``docs/bench/policy_search.json``) and, unless ``--no-docs``, its section of ``docs/benchmarks.md``.
+policy search timed as the loop times it (propagator construction + search). ``--device cuda``: model,
+policy and propagation on the GPU (the targets are judged on the CPU only). Writes JSON (default
+``docs/bench/policy_search[-cuda].json``) and, unless ``--no-docs``, its section of ``docs/benchmarks.md``.
 
     .venv/bin/python scripts/bench_policy_search.py [--sizes 250 500 1000] [--dtypes float64 float32]
-        [--propagators moment_matching particles] [--threads 2] [--repeats 3] [--skip-search | --search-at-targets]
+        [--propagators moment_matching particles] [--threads 2] [--device cpu] [--repeats 3]
+        [--skip-search | --search-at-targets]
         [--overrides OVERRIDE ...] [--mm-overrides OVERRIDE ...] [--particles-overrides OVERRIDE ...]
         [--output PATH] [--no-docs] [--cache-dir DIR]
 """
@@ -57,6 +59,7 @@ from qtl.loop import (
     instantiate_checked,
     policy_actor,
     random_actor,
+    resolve_device,
     run_episode,
     torch_generator,
 )
@@ -229,15 +232,16 @@ def measure(job: dict[str, Any]) -> dict[str, Any]:
             # -- Everything as qtl/loop.py makes it, from the composed config. -----------------------
             cfg = compose_config(job["propagator"], job["dtype"], job["overrides"])
             dtype = DTYPES[cfg.dtype]
+            device = resolve_device(job["device"])
             seed_everything(cfg.seed)
             task = make_task(cfg)
             features = AngleFeatures(task.state_dim, task.angle_dims)
             reward = ExpectedSaturatingReward.from_spec(task.reward)
-            start = task.start_distribution(dtype)
+            start = task.start_distribution(dtype).to(device=device)
             make_propagator = instantiate(cfg.propagation)
             search = instantiate_checked(cfg.optimizer)
-            model = DynamicsGP.load(job["model"], dtype=dtype)
-            policy = initial_policy(cfg, task, features, dtype)
+            model = DynamicsGP.load(job["model"], dtype=dtype, device=device)
+            policy = initial_policy(cfg, task, features, dtype).to(device)
             warm_up_optimisers()
             result.update(horizon=task.horizon, propagation=OmegaConf.to_container(cfg.propagation, resolve=True),
                           optimizer=OmegaConf.to_container(cfg.optimizer, resolve=True),
@@ -287,14 +291,14 @@ def run_job(job: dict[str, Any]) -> dict[str, Any]:
         "error": f"worker exited with {done.returncode}: {' | '.join(tail)}"}
 
 
-def judge(result: dict[str, Any], judged: bool) -> tuple[str, str]:
+def judge(result: dict[str, Any], judged: bool, why_not: str = "settings overridden") -> tuple[str, str]:
     """The target of a result's configuration and whether it was met."""
     target = TARGETS.get((result["propagator"], result["n"]))
     if target is None:
         return "—", "—"
     label = f"≤ {target:.0f} s ({TARGET_NOTES[result['propagator']]})"
     if not judged:
-        return label, "not judged (settings overridden)"
+        return label, f"not judged ({why_not})"
     if "search_s" not in result:
         return label, "not measured"
     return label, "met" if result["search_s"] <= target else "not met"
@@ -321,13 +325,15 @@ def markdown(results: list[dict[str, Any]], info: dict[str, Any]) -> str:
     """The section of docs/benchmarks.md."""
     m = info["machine"]
     settings = "the loop's settings" if info["judged"] else f"overridden settings ({', '.join(info['overrides_all'])})"
+    on_gpu = info["device"] != "cpu"
+    where = f"device {info['device']} ({info['gpu']}), " if on_gpu else ""
     lines = [
-        "## Policy search: moment matching and particles",
+        "## Policy search: moment matching and particles" + (f" ({info['device']})" if on_gpu else ""),
         "",
         DESCRIPTION,
         "",
-        f"`{info['command']}` — {info['date']}, {m['cpu']} ({m['cores']} cores), {info['threads']} torch threads, "
-        f"torch {m['torch']}, {settings}. Results: `{info['output']}`.",
+        f"`{info['command']}` — {info['date']}, {where}{m['cpu']} ({m['cores']} cores), "
+        f"{info['threads']} torch threads, torch {m['torch']}, {settings}. Results: `{info['output']}`.",
         "",
         *settings_lines(results),
         "",
@@ -337,7 +343,7 @@ def markdown(results: list[dict[str, Any]], info: dict[str, Any]) -> str:
     ]
     errors = []
     for r in results:
-        target, met = judge(r, info["judged"])
+        target, met = judge(r, info["judged"], info["why_not_judged"])
         evals = str(r["evaluations"]) if "evaluations" in r else "—"
         per_eval = f"{r['search_s'] / r['evaluations']:.3f}" if r.get("evaluations") else "—"
         rss = f"{r['peak_rss_mib']:.0f}" if "peak_rss_mib" in r else "—"
@@ -362,6 +368,7 @@ def main() -> None:
     parser.add_argument("--dtypes", nargs="+", default=list(DTYPES), choices=list(DTYPES))
     parser.add_argument("--propagators", nargs="+", default=list(PROPAGATORS), choices=list(PROPAGATORS))
     parser.add_argument("--threads", type=int, default=2, help="torch threads of every measurement")
+    parser.add_argument("--device", default="cpu", help="torch device of model, policy and propagation (cpu, cuda)")
     parser.add_argument("--repeats", type=int, default=3, help="timed rollouts + gradients after one warm-up")
     parser.add_argument("--seed", type=int, default=0, help="of the data collection and the model fit")
     parser.add_argument("--skip-search", action="store_true", help="only the rollout + gradient")
@@ -370,7 +377,7 @@ def main() -> None:
     parser.add_argument("--overrides", nargs="*", default=[], help="Hydra overrides for every configuration")
     parser.add_argument("--mm-overrides", nargs="*", default=[], help="Hydra overrides for moment matching only")
     parser.add_argument("--particles-overrides", nargs="*", default=[], help="Hydra overrides for particles only")
-    parser.add_argument("--output", type=Path, default=DEFAULT_OUTPUT, help="JSON path")
+    parser.add_argument("--output", type=Path, help="JSON path (default: docs/bench/policy_search[-cuda].json)")
     parser.add_argument("--no-docs", action="store_true", help="do not write the section of docs/benchmarks.md")
     parser.add_argument("--cache-dir", type=Path, default=CACHE_DIR, help="fitted models, one per n")
     parser.add_argument("--worker", help=argparse.SUPPRESS)  # child process: one configuration, as JSON
@@ -380,6 +387,9 @@ def main() -> None:
         return
 
     torch.set_num_threads(args.threads)
+    device = resolve_device(args.device)  # a bad or absent device fails here, before any measurement
+    suffix = "" if device.type == "cpu" else f"-{device.type}"
+    output = (args.output or DEFAULT_OUTPUT.with_stem(DEFAULT_OUTPUT.stem + suffix)).resolve()
     per_propagator = {"moment_matching": args.mm_overrides, "particles": args.particles_overrides}
     data_cfg = compose_config("moment_matching", "float64", args.overrides)
     results, models = [], {}
@@ -391,33 +401,35 @@ def main() -> None:
             for dtype_name in args.dtypes:
                 job = {"propagator": propagator, "n": n, "dtype": dtype_name, "model": str(path),
                        "overrides": [*args.overrides, *per_propagator[propagator]], "threads": args.threads,
-                       "repeats": args.repeats,
+                       "device": args.device, "repeats": args.repeats,
                        "skip_search": args.skip_search or (args.search_at_targets and (propagator, n) not in TARGETS)}
                 results.append(run_job(job))
                 print(json.dumps({k: v for k, v in results[-1].items() if k not in ("propagation", "optimizer")}),
                       file=sys.stderr, flush=True)
 
-    output = args.output.resolve()
     overrides_all = [*args.overrides, *args.mm_overrides, *args.particles_overrides]
     info = {
         "date": benchlib.today(),
         "command": benchlib.command_line(),
         "machine": benchlib.machine(),
         "threads": args.threads,
+        "device": args.device,
+        "gpu": torch.cuda.get_device_name(device) if device.type == "cuda" else None,
         "output": benchlib.display_path(output),
         "overrides_all": overrides_all,
-        "judged": not overrides_all and not args.skip_search,
+        "judged": not overrides_all and not args.skip_search and device.type == "cpu",
+        "why_not_judged": "the targets are for 2 CPU threads" if device.type != "cpu" else "settings overridden",
         "targets": [{"propagator": p, "n": n, "search_s_max": s, "what": TARGET_NOTES[p]} for (p, n), s in
                     TARGETS.items()],
         "quoted_references": QUOTED_REFERENCES,
         "models": {str(n): m for n, m in models.items()},
     }
     for r in results:
-        r["target"], r["met"] = judge(r, info["judged"])
+        r["target"], r["met"] = judge(r, info["judged"], info["why_not_judged"])
     benchlib.write_results(output, info, results)
     section = markdown(results, info)
     if not args.no_docs:
-        benchlib.write_section(SECTION, section)
+        benchlib.write_section(SECTION + suffix, section)
     print(section)
 
 

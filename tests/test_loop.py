@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from qtl.checkpoint import CheckpointError, latest_checkpoint, load_checkpoint
-from qtl.loop import run
+from qtl.loop import resolve_device, run
 from qtl.task import TaskError
 from tests.helpers import tiny_config
 
@@ -74,10 +74,29 @@ def test_resume_from_missing_or_corrupt_directory_is_named(tmp_path):
         run(tiny_config("episodes=1"), tmp_path / "bad", resume=True)
 
 
-def test_unsupported_device_fails_before_any_work(tmp_path):
-    with pytest.raises(ValueError, match="runs on the CPU only"):
-        run(tiny_config("device=cuda"), tmp_path)
-    assert not (tmp_path / "metrics.csv").exists()
+@pytest.mark.parametrize(
+    ("device", "gpus", "message"),
+    [
+        ("cuda", 0, "sees no CUDA GPU on this machine"),
+        ("cuda:1", 1, "this machine has 1 CUDA device"),
+        ("tpu", 0, "not a torch device"),
+        ("meta", 0, "qtl runs on cpu or cuda"),
+    ],
+)
+def test_unavailable_device_fails_before_any_work(tmp_path, monkeypatch, device, gpus, message):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: gpus > 0)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: gpus)
+    with pytest.raises(ValueError, match=message):
+        run(tiny_config(f"device={device}"), tmp_path)
+    assert not any(tmp_path.iterdir())
+
+
+def test_resolve_device_accepts_cpu_and_present_gpus(monkeypatch):
+    assert resolve_device("cpu") == torch.device("cpu")
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 2)
+    assert resolve_device("cuda") == torch.device("cuda")
+    assert resolve_device("cuda:1") == torch.device("cuda", 1)
 
 
 @pytest.mark.parametrize(

@@ -273,7 +273,7 @@ class DynamicsGP(gpytorch.models.ExactGP):
             raise ValueError(f"restarts must be >= 1, got {restarts}")
         start = self.hyperparameters
         best_theta = start.log().clone()  # E x (D + 2)
-        best_value = torch.full((self.num_outputs,), -math.inf, dtype=best_theta.dtype)
+        best_value = torch.full((self.num_outputs,), -math.inf, dtype=best_theta.dtype, device=best_theta.device)
         for attempt in range(restarts):
             log_theta = start.log()
             if attempt > 0:
@@ -375,8 +375,10 @@ class DynamicsGP(gpytorch.models.ExactGP):
         }
 
     @classmethod
-    def from_state(cls, state: dict, *, dtype: torch.dtype = torch.float64) -> DynamicsGP:
-        """Rebuild a model from :meth:`state`; a malformed state raises ValueError."""
+    def from_state(
+        cls, state: dict, *, dtype: torch.dtype = torch.float64, device: torch.device | str = "cpu"
+    ) -> DynamicsGP:
+        """Rebuild a model from :meth:`state` on ``device``; a malformed state raises ValueError."""
         if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT:
             raise ValueError("not a DynamicsGP state (missing or wrong 'format' entry)")
         if state.get("version") != CHECKPOINT_VERSION:
@@ -390,15 +392,17 @@ class DynamicsGP(gpytorch.models.ExactGP):
             state["signal_variance"].to(dtype),
             state["noise_variance"].to(dtype),
         )
-        return cls(state["train_x"], state["train_y"], theta, dtype=dtype)
+        return cls(state["train_x"].to(device), state["train_y"].to(device), theta, dtype=dtype)
 
     def save(self, path: str | os.PathLike) -> None:
         """Write data and θ to ``path`` (an ExactGP's state_dict alone lacks the data)."""
         torch.save(self.state(), path)
 
     @classmethod
-    def load(cls, path: str | os.PathLike, *, dtype: torch.dtype = torch.float64) -> DynamicsGP:
-        """Read a model written by :meth:`save`; a missing or corrupt file raises a clear error."""
+    def load(
+        cls, path: str | os.PathLike, *, dtype: torch.dtype = torch.float64, device: torch.device | str = "cpu"
+    ) -> DynamicsGP:
+        """Read a model written by :meth:`save` onto ``device``; a missing or corrupt file raises a clear error."""
         if not os.path.isfile(path):
             raise FileNotFoundError(f"no DynamicsGP checkpoint at {os.fspath(path)!r}")
         try:
@@ -406,6 +410,6 @@ class DynamicsGP(gpytorch.models.ExactGP):
         except Exception as err:  # torch raises many types for a damaged file
             raise ValueError(f"corrupt DynamicsGP checkpoint {os.fspath(path)!r}: {err}") from err
         try:
-            return cls.from_state(state, dtype=dtype)
+            return cls.from_state(state, dtype=dtype, device=device)
         except ValueError as err:
             raise ValueError(f"corrupt DynamicsGP checkpoint {os.fspath(path)!r}: {err}") from err

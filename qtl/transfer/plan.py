@@ -36,6 +36,7 @@ class TransferPlan:
         task: Task,
         features: AngleFeatures,
         dtype: torch.dtype = torch.float64,
+        device: torch.device | str = "cpu",
     ) -> None:
         self.rule = rule
         self.transfer_theta = bool(cfg.get("hyperparameters", True))
@@ -68,7 +69,7 @@ class TransferPlan:
             raise TransferError(f"transfer.compliance_temperature must be > 0, got {self.temperature}")
         if not (math.isfinite(self.resolution) and self.resolution >= 0):
             raise TransferError(f"transfer.compliance_resolution must be >= 0, got {self.resolution}")
-        self._source_model = None if self.source is None else self.source.model(features, dtype)
+        self._source_model = None if self.source is None else self.source.model(features, dtype, device)
         self.theta: GPHyperparameters | None = None  # θ_{i−1}: what the previous model used
         self.fallen_back = False  # the compliance gate switched this run to PILCO
 
@@ -106,10 +107,11 @@ class TransferPlan:
             self.fallen_back = True
             self.theta = learned
             return learned
+        like = {"dtype": learned.lengthscales.dtype, "device": learned.lengthscales.device}
         if self.theta is None:
-            self.theta = self.rule.start(self.source.theta.to(dtype=learned.lengthscales.dtype))
+            self.theta = self.rule.start(self.source.theta.to(**like))
         else:
-            self.theta = self.rule.update(self.theta, learned, num_tuples)
+            self.theta = self.rule.update(self.theta.to(**like), learned, num_tuples)
         return self.theta
 
     # -- checkpoints ----------------------------------------------------------------------------
@@ -117,7 +119,7 @@ class TransferPlan:
     def state_dict(self) -> dict[str, Any]:
         """θ_{i−1}, the rule's state and the gate's, for a checkpoint."""
         return {
-            "theta": None if self.theta is None else self.theta.state_dict(),
+            "theta": None if self.theta is None else self.theta.to(device="cpu").state_dict(),
             "rule": self.rule.state_dict(),
             "fallen_back": self.fallen_back,
         }

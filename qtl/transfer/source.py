@@ -93,9 +93,11 @@ class SourceRun:
                 f"target's policy has {target}; use the same policy config (e.g. task.policy_size) on both"
             )
 
-    def model(self, features: AngleFeatures, dtype: torch.dtype = torch.float64) -> DynamicsGP:
-        """The source GP: its own data with θ_s (no fitting), e.g. for task compliance (Eq. 14)."""
-        inputs, targets = gp_training_pairs(self.dataset, features, dtype)
+    def model(
+        self, features: AngleFeatures, dtype: torch.dtype = torch.float64, device: torch.device | str = "cpu"
+    ) -> DynamicsGP:
+        """The source GP on ``device``: its own data with θ_s (no fitting), e.g. for task compliance (Eq. 14)."""
+        inputs, targets = (t.to(device) for t in gp_training_pairs(self.dataset, features, dtype))
         return DynamicsGP(inputs, targets, hyperparameters=self.theta.to(dtype=dtype), dtype=dtype)
 
 
