@@ -15,7 +15,8 @@ reused rather than recomputed, and an interrupted one is resumed; extra argument
 overrides for every target run.
 
     python scripts/bench_transfer.py [override ...] [--seeds 0 1 2 3 4] [--episodes 9] [--jobs 2]
-    python scripts/bench_transfer.py optimizer.restarts=1
+        [--approaches pilco qtl_bayesian qtl_gamma_09 | all]
+    python scripts/bench_transfer.py optimizer.restarts=1 --episodes 7 --approaches all  # the paper's 7 approaches
 """
 
 from __future__ import annotations
@@ -34,12 +35,17 @@ import benchlib
 from qtl.launch import ensure_run
 from qtl.metrics import Curve
 
-APPROACHES = {  # name in the table: overrides of the target run (beyond transfer.source)
+APPROACHES = {  # name in the table: overrides of the target run (beyond transfer.source); the paper's seven
     "PILCO": [],
-    "QTL Bayesian": ["approach=qtl_bayesian"],
+    "Hyper-parameters transfer": ["approach=hyperparameters_transfer"],
     "QTL γ = 0.9": ["approach=qtl_gamma_09"],
+    "QTL γ = 0.5": ["approach=qtl_gamma_05"],
+    "QTL γ = 1": ["approach=qtl_gamma_1"],
+    "QTL Bayesian": ["approach=qtl_bayesian"],
+    "Policy transfer": ["approach=policy_transfer"],
 }
-SLUG = {"PILCO": "pilco", "QTL Bayesian": "qtl_bayesian", "QTL γ = 0.9": "qtl_gamma_09"}
+SLUG = {name: overrides[0].partition("=")[2] if overrides else "pilco" for name, overrides in APPROACHES.items()}
+DEFAULT_APPROACHES = ["pilco", "qtl_bayesian", "qtl_gamma_09"]  # the acceptance figure; --approaches all: the seven
 SOURCE_EPISODES = 7  # learned episodes of a source run (bench_cartpole's default)
 
 
@@ -55,12 +61,12 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
     parser.add_argument("--episodes", type=int, default=9, help="learned episodes per target run (after 1 initial)")
     parser.add_argument("--mass", type=float, default=2.0, help="target pole mass (kg)")
-    parser.add_argument("--approaches", nargs="+", default=list(SLUG.values()), choices=list(SLUG.values()))
+    parser.add_argument("--approaches", nargs="+", default=DEFAULT_APPROACHES, choices=[*SLUG.values(), "all"])
     parser.add_argument("--jobs", type=int, default=2, help="runs in parallel (one torch thread each)")
     parser.add_argument("--sources", type=Path, default=benchlib.ROOT / "runs" / "bench_cartpole" / "cartpole")
     parser.add_argument("--runs-dir", type=Path, default=benchlib.ROOT / "runs" / "bench_transfer")
     args, overrides = parser.parse_known_args()
-    approaches = [name for name, slug in SLUG.items() if slug in args.approaches]
+    approaches = [name for name, slug in SLUG.items() if slug in args.approaches or "all" in args.approaches]
 
     def source(seed: int) -> Path:
         return args.sources / f"seed_{seed}"
@@ -101,7 +107,7 @@ def main() -> None:
     judged = "PILCO" in results and len(args.seeds) >= 5
     pilco = results.get("PILCO", {}).get("median_episodes_to_success")
     passed = {name: r["median_episodes_to_success"] < pilco for name, r in results.items()
-              if name != "PILCO" and pilco is not None} if judged else {}
+              if name.startswith("QTL") and pilco is not None} if judged else {}
 
     info = {"date": benchlib.today(), "command": benchlib.command_line(), "machine": benchlib.machine(),
             "overrides": overrides, "episodes_per_run": budget, "target_pole_mass": args.mass,
