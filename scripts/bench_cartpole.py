@@ -5,7 +5,9 @@ each, and reports per seed the first successful episode (the task's criterion: t
 within 0.15 m of the upright target for the last 2 s), the learning curve and the wall time per
 episode split into model fitting and policy search. Required: success within 8 episodes (the
 random one included) in at least 4 of 5 seeds. Writes ``docs/bench/cartpole[-<tag>].json`` and
-its table in ``docs/benchmarks.md``; extra arguments are Hydra overrides for every run.
+its table in ``docs/benchmarks.md``; extra arguments are Hydra overrides for every run. A finished
+run directory made by the same overrides is reused and an interrupted one resumed (``qtl.launch``),
+so a long benchmark can be completed over several calls.
 
     python scripts/bench_cartpole.py [--seeds 0 1 2 3 4] [--within 8] [--jobs 2] [--tag NAME] [override ...]
     python scripts/bench_cartpole.py --within 10 --tag particles propagation=particles
@@ -16,14 +18,14 @@ from __future__ import annotations
 import argparse
 import csv
 import json
-import subprocess
 import sys
-import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import benchlib
+
+from qtl.launch import ensure_run
 
 REQUIRED_EPISODES = 8  # success within this many episodes, the random one included (--within)
 REQUIRED_SEEDS = 4  # in at least this many of ...
@@ -36,16 +38,10 @@ def read_csv(path: Path) -> list[dict[str, str]]:
 
 
 def run_seed(seed: int, episodes: int, run_dir: Path, overrides: list[str]) -> dict:
-    """One full learning run through the CLI; its per-episode figures."""
-    args = [sys.executable, "-m", "qtl", f"seed={seed}", f"episodes={episodes}", "progress=false", "threads=1",
-            f"hydra.run.dir={run_dir}", *overrides]
-    start = time.perf_counter()
-    done = subprocess.run(args, capture_output=True, text=True)
-    wall = time.perf_counter() - start
-    if done.returncode != 0:
-        raise RuntimeError(f"seed {seed} failed:\n{done.stderr[-3000:]}")
-    rows = read_csv(run_dir / "metrics.csv")
-    timings = read_csv(run_dir / "timings.csv")
+    """One full learning run through the CLI (reused or resumed when there is one); its per-episode figures."""
+    wall = ensure_run([f"seed={seed}", f"episodes={episodes}", *overrides], run_dir, episodes + 1)
+    rows = read_csv(run_dir / "metrics.csv")[: episodes + 1]
+    timings = read_csv(run_dir / "timings.csv")[: episodes + 1]
     learned = [t for t, r in zip(timings, rows, strict=True) if r["kind"] == "policy"]
     successes = [int(r["success"]) for r in rows]
     first = next((i for i, s in enumerate(successes) if s), None)
@@ -58,7 +54,7 @@ def run_seed(seed: int, episodes: int, run_dir: Path, overrides: list[str]) -> d
         "first_success": first,
         "model_fit_s_per_episode": sum(float(t["model_fit_s"]) for t in learned) / max(len(learned), 1),
         "policy_search_s_per_episode": sum(float(t["policy_search_s"]) for t in learned) / max(len(learned), 1),
-        "wall_s": wall,
+        "wall_s": wall,  # of this call: 0 for a reused run, the resumed part only for a resumed one
     }
 
 
@@ -104,14 +100,15 @@ def main() -> None:
         + f" ({len(solved)} of {len(results)} seeds succeeded).**",
         "",
         "| seed | first success (episode, 0 = random) | returns per episode | model fit (s/episode) | "
-        "policy search (s/episode) | wall (s) |",
+        "policy search (s/episode) | wall (s, this call) |",
         "| ---: | ---: | --- | ---: | ---: | ---: |",
     ]
     for r in results:
         first = "—" if r["first_success"] is None else str(r["first_success"])
         curve = " ".join(f"{v:.1f}" for v in r["returns"])
+        wall = f"{r['wall_s']:.0f}" if r["wall_s"] else "reused"
         lines.append(f"| {r['seed']} | {first} | {curve} | {r['model_fit_s_per_episode']:.1f} | "
-                     f"{r['policy_search_s_per_episode']:.1f} | {r['wall_s']:.0f} |")
+                     f"{r['policy_search_s_per_episode']:.1f} | {wall} |")
     benchlib.write_section(f"bench_{name}", "\n".join(lines))
     print("\n".join(lines))
 
