@@ -9,7 +9,8 @@ its table in ``docs/benchmarks.md``; extra arguments are Hydra overrides for eve
 run directory made by the same overrides is reused and an interrupted one resumed (``qtl.launch``),
 so a long benchmark can be completed over several calls.
 
-    python scripts/bench_cartpole.py [--seeds 0 1 2 3 4] [--within 8] [--jobs 2] [--tag NAME] [override ...]
+    python scripts/bench_cartpole.py [--seeds 0 1 2 3 4] [--within 8] [--jobs 2] [--threads 1] [--tag NAME]
+        [override ...]
     python scripts/bench_cartpole.py --within 10 --tag particles propagation=particles
 """
 
@@ -37,9 +38,9 @@ def read_csv(path: Path) -> list[dict[str, str]]:
         return list(csv.DictReader(f))
 
 
-def run_seed(seed: int, episodes: int, run_dir: Path, overrides: list[str]) -> dict:
+def run_seed(seed: int, episodes: int, run_dir: Path, overrides: list[str], threads: int = 1) -> dict:
     """One full learning run through the CLI (reused or resumed when there is one); its per-episode figures."""
-    wall = ensure_run([f"seed={seed}", f"episodes={episodes}", *overrides], run_dir, episodes + 1)
+    wall = ensure_run([f"seed={seed}", f"episodes={episodes}", *overrides], run_dir, episodes + 1, threads=threads)
     rows = read_csv(run_dir / "metrics.csv")[: episodes + 1]
     timings = read_csv(run_dir / "timings.csv")[: episodes + 1]
     learned = [t for t, r in zip(timings, rows, strict=True) if r["kind"] == "policy"]
@@ -64,7 +65,8 @@ def main() -> None:
     parser.add_argument("--within", type=int, default=REQUIRED_EPISODES,
                         help="success required within this many episodes, the random one included")
     parser.add_argument("--episodes", type=int, help="learned episodes per run (default: --within − 1)")
-    parser.add_argument("--jobs", type=int, default=2, help="runs in parallel (one torch thread each)")
+    parser.add_argument("--jobs", type=int, default=2, help="runs in parallel")
+    parser.add_argument("--threads", type=int, default=1, help="torch threads per run")
     parser.add_argument("--tag", default="", help="names the result files and table (e.g. 'particles')")
     parser.add_argument("--runs-dir", type=Path, default=benchlib.ROOT / "runs" / "bench_cartpole")
     args, overrides = parser.parse_known_args()
@@ -74,12 +76,13 @@ def main() -> None:
     name = "cartpole" + (f"-{args.tag}" if args.tag else "")
     runs_dir = args.runs_dir / name
     with ThreadPoolExecutor(max_workers=args.jobs) as pool:
-        results = list(pool.map(lambda s: run_seed(s, args.episodes, runs_dir / f"seed_{s}", overrides), args.seeds))
+        results = list(pool.map(lambda s: run_seed(s, args.episodes, runs_dir / f"seed_{s}", overrides, args.threads),
+                                args.seeds))
     solved = [r for r in results if r["first_success"] is not None and r["first_success"] < args.within]
     passed = len(solved) >= REQUIRED_SEEDS if len(results) >= JUDGED_SEEDS else None
 
     info = {"date": benchlib.today(), "command": benchlib.command_line(), "machine": benchlib.machine(),
-            "overrides": overrides, "episodes_per_run": args.episodes + 1, "jobs": args.jobs,
+            "overrides": overrides, "episodes_per_run": args.episodes + 1, "jobs": args.jobs, "threads": args.threads,
             "required": f"success within {args.within} episodes in >= {REQUIRED_SEEDS} of {JUDGED_SEEDS} seeds",
             "passed": passed, "results": results}
     out = benchlib.ROOT / "docs" / "bench" / f"{name}.json"
@@ -90,8 +93,8 @@ def main() -> None:
     lines = [
         f"## Cart-pole swing-up, 0.5 kg, from scratch{f' ({args.tag})' if args.tag else ''}",
         "",
-        f"`{info['command']}` — {info['date']}, {m['cpu']} ({m['cores']} cores), {args.jobs} runs in parallel with "
-        f"1 torch thread each, torch {m['torch']}. {args.episodes + 1} episodes per seed (1 random + "
+        f"`{info['command']}` — {info['date']}, {m['cpu']} ({m['cores']} cores), {args.jobs} run(s) in parallel with "
+        f"{args.threads} torch thread(s) each, torch {m['torch']}. {args.episodes + 1} episodes per seed (1 random + "
         f"{args.episodes} learned). Success: tip within 0.15 m of the target for the last 2 s. "
         f"Results: `docs/bench/{name}.json`.",
         "",
