@@ -1,4 +1,4 @@
-"""Benchmark — qualitative transfer on cart-pole: 0.5 kg source → 2.0 kg target, PILCO vs QTL, 5 seeds.
+"""Benchmark — qualitative transfer on cart-pole: 0.5 kg source → 2.0 kg target, PILCO vs the transfer approaches.
 
 Per seed, the source is the 0.5 kg learning-loop benchmark's run of that seed
 (``runs/bench_cartpole/cartpole/seed_<k>``, made by ``scripts/bench_cartpole.py``; created here with
@@ -10,7 +10,9 @@ and time to convergence (first episode at 95 % of it), mean ± std over seeds. R
 reaches success in fewer episodes than PILCO (median over seeds; a run that never succeeds
 counts as the budget). Writes ``docs/bench/transfer.json`` and its table in ``docs/benchmarks.md``.
 
-Runs are deterministic and causal, so a finished run directory made by the same overrides is
+The runs directory is laid out as an experiment directory (``target/<approach>/m<mass>/seed_<k>``, ``source``
+a link to the sources), so ``python scripts/report.py runs/bench_transfer`` writes the paper's Tables 1-3 and
+Fig. 1 for it. Runs are deterministic and causal, so a finished run directory made by the same overrides is
 reused rather than recomputed, and an interrupted one is resumed; extra arguments are Hydra
 overrides for every target run.
 
@@ -31,9 +33,11 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import benchlib
+import yaml
 
 from qtl.launch import ensure_run
 from qtl.metrics import Curve
+from qtl.report import EXPERIMENT_FILE, SOURCE_DIR, TARGET_DIR
 
 APPROACHES = {  # name in the table: overrides of the target run (beyond transfer.source); the paper's seven
     "PILCO": [],
@@ -47,6 +51,15 @@ APPROACHES = {  # name in the table: overrides of the target run (beyond transfe
 SLUG = {name: overrides[0].partition("=")[2] if overrides else "pilco" for name, overrides in APPROACHES.items()}
 DEFAULT_APPROACHES = ["pilco", "qtl_bayesian", "qtl_gamma_09"]  # the acceptance figure; --approaches all: the seven
 SOURCE_EPISODES = 7  # learned episodes of a source run (bench_cartpole's default)
+
+
+def link_experiment(runs_dir: Path, sources: Path) -> None:
+    """Make ``runs_dir`` an experiment directory that ``scripts/report.py`` reads: ``source`` links to the sources."""
+    link = runs_dir / SOURCE_DIR
+    if not link.exists():
+        link.symlink_to(sources.resolve(), target_is_directory=True)
+    (runs_dir / EXPERIMENT_FILE).write_text(yaml.safe_dump({"name": "cartpole transfer benchmark",
+                                                            "commands": [benchlib.command_line()]}))
 
 
 def stats(values: list[float], digits: int = 1) -> str:
@@ -71,12 +84,15 @@ def main() -> None:
     def source(seed: int) -> Path:
         return args.sources / f"seed_{seed}"
 
+    def target_dir(name: str, seed: int) -> Path:  # the layout of an experiment directory (qtl.report)
+        return args.runs_dir / TARGET_DIR / SLUG[name] / f"m{args.mass}" / f"seed_{seed}"
+
     def make_source(seed: int) -> float:
         return ensure_run([f"seed={seed}", f"episodes={SOURCE_EPISODES}"], source(seed), SOURCE_EPISODES + 1)
 
     def target(job: tuple[str, int]) -> tuple[str, int, float]:
         name, seed = job
-        run_dir = args.runs_dir / f"m{args.mass}" / SLUG[name] / f"seed_{seed}"
+        run_dir = target_dir(name, seed)
         transfer = [f"transfer.source={source(seed)}"] if APPROACHES[name] else []
         run = [f"seed={seed}", f"episodes={args.episodes}", f"task.env.pole_mass={args.mass}", *overrides,
                *APPROACHES[name], *transfer]
@@ -88,12 +104,13 @@ def main() -> None:
             list(pool.map(make_source, args.seeds))  # sources first: every QTL run of a seed reads its own
         walls = {(name, seed): wall for name, seed, wall in pool.map(target, jobs)}
 
+    link_experiment(args.runs_dir, args.sources)
     budget = args.episodes + 1
     results = {}
     for name in approaches:
         per_seed = []
         for seed in args.seeds:
-            run_dir = args.runs_dir / f"m{args.mass}" / SLUG[name] / f"seed_{seed}"
+            run_dir = target_dir(name, seed)
             curve = Curve.read(run_dir, budget)
             with open(run_dir / "timings.csv", newline="") as f:
                 search = [float(t["policy_search_s"]) for t in csv.DictReader(f)][1:budget]
