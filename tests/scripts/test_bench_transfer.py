@@ -1,0 +1,43 @@
+"""``scripts/bench_transfer.py`` lays its runs out as an experiment directory that ``qtl.report`` reads."""
+
+from __future__ import annotations
+
+import csv
+import sys
+from pathlib import Path
+
+import yaml
+
+from qtl.report import discover
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "scripts"))
+import bench_transfer
+
+
+def _fake_run(run_dir: Path, returns: list[float]) -> None:
+    run_dir.mkdir(parents=True)
+    with open(run_dir / "metrics.csv", "w", newline="") as f:
+        writer = csv.DictWriter(f, ["episode", "kind", "return", "success", "compliance"])
+        writer.writeheader()
+        for episode, value in enumerate(returns):
+            writer.writerow({"episode": episode, "kind": "policy" if episode else "random", "return": value,
+                             "success": 0, "compliance": "nan"})
+
+
+def test_every_approach_has_a_preset_and_the_runs_form_an_experiment_directory(tmp_path):
+    configs = Path(__file__).resolve().parents[2] / "configs" / "approach"
+    assert len(bench_transfer.APPROACHES) == 7
+    assert all((configs / f"{slug}.yaml").is_file() for slug in bench_transfer.SLUG.values() if slug != "pilco")
+    sources, runs = tmp_path / "sources", tmp_path / "runs"
+    for seed in (0, 1):
+        _fake_run(sources / f"seed_{seed}", [0.0, 5.0])
+        for slug, offset in (("pilco", 0.0), ("qtl_bayesian", 10.0)):
+            _fake_run(runs / "target" / slug / "m2.0" / f"seed_{seed}", [offset, offset + seed])
+    bench_transfer.link_experiment(runs, sources)
+    bench_transfer.link_experiment(runs, sources)  # again: the link stays, the record is rewritten
+    assert (runs / "source").resolve() == sources.resolve()
+    assert yaml.safe_load((runs / "experiment.yaml").read_text())["name"] == "cartpole transfer benchmark"
+    experiment = discover(runs)
+    assert experiment.approaches == ["pilco", "qtl_bayesian"]
+    assert sorted(experiment.sources) == [0, 1]
+    assert experiment.cell("qtl_bayesian", "m2.0").curves[1].returns == [10.0, 11.0]
