@@ -58,15 +58,17 @@ class TransitionDataset:
         """States `T+1 x D` and actions `T x F` of one episode."""
         return self._states[index], self._actions[index]
 
-    def tensors(self, dtype: torch.dtype = torch.float64) -> tuple[Tensor, Tensor, Tensor]:
-        """All transitions as (x_t `n x D`, u_t `n x F`, Δ_t `n x D`)."""
+    def tensors(
+        self, dtype: torch.dtype = torch.float64, device: torch.device | str = "cpu"
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """All transitions as (x_t `n x D`, u_t `n x F`, Δ_t `n x D`) on ``device``."""
         if not self._states:
             raise ValueError("the dataset holds no episodes")
         x = np.concatenate([s[:-1] for s in self._states])
         u = np.concatenate(self._actions)
         delta = np.concatenate([s[1:] - s[:-1] for s in self._states])
-        return (torch.as_tensor(x, dtype=dtype), torch.as_tensor(u, dtype=dtype),
-                torch.as_tensor(delta, dtype=dtype))
+        return (torch.as_tensor(x, dtype=dtype, device=device), torch.as_tensor(u, dtype=dtype, device=device),
+                torch.as_tensor(delta, dtype=dtype, device=device))
 
     def state(self) -> dict:
         """The dataset as tensors and primitives (for checkpoints loaded with weights_only)."""
@@ -89,7 +91,9 @@ class TransitionDataset:
         return data
 
 
-def gp_training_pairs(data: TransitionDataset, features: AngleFeatures, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
-    """Inputs [φ(x_t), u_t] `n x (D + K + F)` and targets Δ_t `n x D` (Section 3.3)."""
-    x, u, delta = data.tensors(dtype)
+def gp_training_pairs(
+    data: TransitionDataset, features: AngleFeatures, dtype: torch.dtype, device: torch.device | str = "cpu"
+) -> tuple[Tensor, Tensor]:
+    """Inputs [φ(x_t), u_t] `n x (D + K + F)` and targets Δ_t `n x D` on ``device`` (Section 3.3)."""
+    x, u, delta = data.tensors(dtype, device)
     return torch.cat([features(x), u], dim=-1), delta

@@ -162,7 +162,7 @@ def fit_dynamics(
     Above ``cfg.sparse_above`` tuples the model is the sparse GP with ``cfg.inducing`` inducing inputs.
     The model lives on ``device`` (that of its training tuples).
     """
-    inputs, targets = (t.to(device) for t in gp_training_pairs(data, features, dtype))
+    inputs, targets = gp_training_pairs(data, features, dtype, device)
     if cfg.get("sparse_above") is not None and len(inputs) > cfg.sparse_above:
         log.info("%d tuples > model.sparse_above=%d: the sparse GP, %d inducing inputs", len(inputs),
                  cfg.sparse_above, min(cfg.inducing, len(inputs)))
@@ -187,7 +187,7 @@ def one_step_smse(model: DynamicsGP, episode: Episode, features: AngleFeatures, 
     """Model fit quality: one-step prediction error on an episode it has not seen, over target variance."""
     data = TransitionDataset(episode.states.shape[1], episode.actions.shape[1])
     data.add_episode(episode.states, episode.actions)
-    inputs, targets = (t.to(model.train_x.device) for t in gp_training_pairs(data, features, dtype))
+    inputs, targets = gp_training_pairs(data, features, dtype, model.train_x.device)
     mean, _ = model.predict(inputs)
     mse = ((mean - targets) ** 2).mean(0)
     return float((mse / model.train_y.var(0)).mean())
@@ -320,7 +320,7 @@ def run(cfg: DictConfig, output_dir: Path, *, resume: bool = False) -> RunResult
                 save_checkpoint(output_dir, episode, {
                     "config": OmegaConf.to_yaml(cfg),
                     "dataset": data.state(),
-                    "theta": None if theta is None else theta.to(device="cpu").state_dict(),
+                    "theta": None if theta is None else theta.state_dict(),
                     "transfer": plan.state_dict(),
                     "policy": {k: v.detach().cpu().clone() for k, v in policy.state_dict().items()},
                     "metrics": recorder.rows,

@@ -96,9 +96,9 @@ class GPHyperparameters:
         }
 
     def state_dict(self) -> dict[str, Tensor]:
-        """The three tensors by field name (``GPHyperparameters(**state)`` rebuilds θ), for checkpoints."""
-        return {"lengthscales": self.lengthscales, "signal_variance": self.signal_variance,
-                "noise_variance": self.noise_variance}
+        """The three tensors by field name, on the CPU (``GPHyperparameters(**state)`` rebuilds θ), for checkpoints."""
+        return {"lengthscales": self.lengthscales.cpu(), "signal_variance": self.signal_variance.cpu(),
+                "noise_variance": self.noise_variance.cpu()}
 
     def to(self, dtype: torch.dtype | None = None, device: torch.device | str | None = None) -> GPHyperparameters:
         """The same θ on another dtype/device."""

@@ -69,6 +69,7 @@ class TransferPlan:
             raise TransferError(f"transfer.compliance_temperature must be > 0, got {self.temperature}")
         if not (math.isfinite(self.resolution) and self.resolution >= 0):
             raise TransferError(f"transfer.compliance_resolution must be >= 0, got {self.resolution}")
+        self.device = torch.device(device)
         self._source_model = None if self.source is None else self.source.model(features, dtype, device)
         self.theta: GPHyperparameters | None = None  # θ_{i−1}: what the previous model used
         self.fallen_back = False  # the compliance gate switched this run to PILCO
@@ -107,11 +108,10 @@ class TransferPlan:
             self.fallen_back = True
             self.theta = learned
             return learned
-        like = {"dtype": learned.lengthscales.dtype, "device": learned.lengthscales.device}
         if self.theta is None:
-            self.theta = self.rule.start(self.source.theta.to(**like))
+            self.theta = self.rule.start(self.source.theta.to(dtype=learned.lengthscales.dtype, device=self.device))
         else:
-            self.theta = self.rule.update(self.theta.to(**like), learned, num_tuples)
+            self.theta = self.rule.update(self.theta, learned, num_tuples)
         return self.theta
 
     # -- checkpoints ----------------------------------------------------------------------------
@@ -119,14 +119,14 @@ class TransferPlan:
     def state_dict(self) -> dict[str, Any]:
         """θ_{i−1}, the rule's state and the gate's, for a checkpoint."""
         return {
-            "theta": None if self.theta is None else self.theta.to(device="cpu").state_dict(),
+            "theta": None if self.theta is None else self.theta.state_dict(),
             "rule": self.rule.state_dict(),
             "fallen_back": self.fallen_back,
         }
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
         """Restore :meth:`state_dict`."""
-        self.theta = None if state["theta"] is None else GPHyperparameters(**state["theta"])
+        self.theta = None if state["theta"] is None else GPHyperparameters(**state["theta"]).to(device=self.device)
         self.rule.load_state_dict(state["rule"])
         self.fallen_back = bool(state["fallen_back"])
 

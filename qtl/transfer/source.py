@@ -97,7 +97,7 @@ class SourceRun:
         self, features: AngleFeatures, dtype: torch.dtype = torch.float64, device: torch.device | str = "cpu"
     ) -> DynamicsGP:
         """The source GP on ``device``: its own data with θ_s (no fitting), e.g. for task compliance (Eq. 14)."""
-        inputs, targets = (t.to(device) for t in gp_training_pairs(self.dataset, features, dtype))
+        inputs, targets = gp_training_pairs(self.dataset, features, dtype, device)
         return DynamicsGP(inputs, targets, hyperparameters=self.theta.to(dtype=dtype), dtype=dtype)
 
 
