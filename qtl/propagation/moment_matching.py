@@ -120,18 +120,20 @@ class MomentMatching:
             raise ValueError(f"horizon must be >= 1, got {horizon}")
         start = start.to(dtype=self.dtype)
         policy_map = self.policy.prepare()  # ψ-only quantities (β_π, ...) once per rollout
-        states, actions, rewards = [start], [], []
+        states, actions = [start], []
         state = start
         for _ in range(horizon):
             state, action = self._step(state, policy_map)
             states.append(state)
             actions.append(action)
-            rewards.append(self.reward.expected(state))
-        rewards_t = torch.stack(torch.broadcast_tensors(*rewards), dim=-1)
+        trajectory = _stack_states(states)
+        # The successors x_1..x_H are scored in one batched call, outside the recursion.
+        successors = Gaussian(trajectory.mean[..., 1:, :], trajectory.cov[..., 1:, :, :])
+        rewards = self.reward.expected(successors)  # ... x H
         return Rollout(
-            value=rewards_t.sum(-1),
-            rewards=rewards_t,
-            states=_stack_states(states),
+            value=rewards.sum(-1),
+            rewards=rewards,
+            states=trajectory,
             actions=_stack_states([a.output for a in actions]),
         )
 

@@ -54,9 +54,10 @@ class _GPPredictive(torch.autograd.Function):
     ``z`` `... x E x P x D` are the points over ℓ_a, ``data`` `... x E x n x D` the training
     inputs over ℓ_a, ``data_sq`` `... x E x n` their squared norms, ``beta`` `... x E x n`,
     ``K_inv`` `... x E x n x n` (symmetric), ``signal_variance`` `... x E` (α²). Returns mean
-    and variance `... x E x P`. Backward keeps only k and k K⁻¹ (`... x E x P x n`) and needs
-    no `n x n` product: the gradient of the quadratic form k K⁻¹ kᵀ is 2 k K⁻¹. Gradients flow
-    to ``z`` only (the data are fixed during policy search).
+    and variance `... x E x P`. Each output's mean and variance depend on z only through that
+    output's row, so the forward pass also forms their gradients w.r.t. z (`... x E x P x D`)
+    and keeps only those: no `P x n` tensor outlives its step, and backward is two products.
+    Gradients flow to ``z`` only (the data are fixed during policy search).
     """
 
     @staticmethod
@@ -68,19 +69,20 @@ class _GPPredictive(torch.autograd.Function):
         log_kern.sub_(0.5 * z.square().sum(-1, keepdim=True)).sub_(0.5 * data_sq[..., None, :])
         kern = log_kern.clamp_max_(0.0).add_(signal_variance.log()[..., None, None]).exp_()
         mean = (kern @ beta[..., None]).squeeze(-1)
-        kern_a = kern @ K_inv
-        var = signal_variance[..., None] - torch.linalg.vecdot(kern_a, kern)
-        ctx.save_for_backward(z, data, beta, kern, kern_a)
+        weighted = (kern @ K_inv).mul_(kern)  # k K⁻¹ ∘ k
+        quad = weighted.sum(-1)  # k K⁻¹ kᵀ
+        var = signal_variance[..., None] - quad
+        # ∂k_n/∂z = k_n (d_n − z): ∂m/∂z = Σ_n β_n k_n (d_n − z), ∂v/∂z = −2 Σ_n (k K⁻¹)_n k_n (d_n − z).
+        grad_mean = kern.mul_(beta[..., None, :]) @ data - z * mean[..., None]
+        grad_var = (weighted @ data - z * quad[..., None]).mul_(-2.0)
+        ctx.save_for_backward(grad_mean, grad_var)
         return mean, var
 
     @staticmethod
     @once_differentiable
     def backward(ctx, grad_mean: Tensor, grad_var: Tensor) -> tuple[Tensor | None, ...]:  # type: ignore[override]
-        z, data, beta, kern, kern_a = ctx.saved_tensors
-        # ∂V/∂k = β g_m − 2 k K⁻¹ g_v; times ∂k/∂(z·d) = k; ‖z‖²'s share gives −z Σ_n (·).
-        grad_log = kern_a.mul(-2.0 * grad_var[..., None]).addcmul_(grad_mean[..., None], beta[..., None, :])
-        grad_log.mul_(kern)  # ∂/∂ log k
-        grad_z = grad_log @ data - z * grad_log.sum(-1, keepdim=True)
+        mean_z, var_z = ctx.saved_tensors
+        grad_z = mean_z * grad_mean[..., None] + var_z * grad_var[..., None]
         return grad_z, None, None, None, None, None
 
 
