@@ -26,6 +26,8 @@ MC_SAMPLES = 100_000
 class MonteCarlo:
     """Monte Carlo references for the moments of f(x), x Gaussian, with SE-derived tolerances."""
 
+    z = MC_Z  # standard errors an estimate may be off by
+
     @staticmethod
     def assert_mean(analytic: Tensor, per_sample: Tensor, what: str = "") -> None:
         """|analytic − mean(Z)| <= MC_Z · std(Z)/√N + MC_ATOL for each entry; Z is `N x ...`."""

@@ -17,12 +17,19 @@ the objective is a deterministic function of ψ (what L-BFGS needs). With ``resa
 it advances every k calls of :meth:`Particles.expected_return`: fresh noise every k evaluations,
 for stochastic optimisers (Adam). The noise is shared across the batch dimensions of the start
 distribution and of stacked models, so a batched rollout equals the per-item rollouts.
+
+Gaussian resampling (PIPPS's "GR", Parmas et al. 2018): with ``gaussian_resampling`` the particles
+are replaced after every step by P fresh draws x = m̂ + L̂ ε' from the Gaussian of their sample mean
+m̂ and covariance Σ̂ = L̂ L̂ᵀ (reparameterised, so the gradient flows through m̂ and L̂). The GP
+step is still sampled exactly per particle; only the state distribution handed to the next step is
+moment-matched, as moment matching does, which keeps the reparameterisation gradient of a long
+(chaotic) rollout from exploding. ε' `H x P x D` is a third stream of the same draw.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 import torch
@@ -46,6 +53,16 @@ MIN_PARTICLES = 2
 SQRT_VARIANCE_FLOOR = 1e-30
 # The base noise is drawn in this dtype and then converted to the propagation's.
 NOISE_DTYPE = torch.float64
+# The stream of the Gaussian-resampling noise within a draw (the start and step noise use stream 0).
+RESAMPLING_STREAM = 1
+
+
+class BaseNoise(NamedTuple):
+    """One draw of base noise: ε_0 `P x D`, ε_1..ε_H `H x P x E`, and ε'_1..ε'_H `H x P x D` (or None)."""
+
+    start: Tensor
+    steps: Tensor
+    resampling: Tensor | None
 
 
 class _GPPredictive(torch.autograd.Function):
@@ -101,6 +118,14 @@ def _root(cov: Tensor) -> Tensor:
     return eigvec * eigval.clamp_min(0.0).sqrt()[..., None, :]
 
 
+def _gaussian_resample(x: Tensor, noise: Tensor) -> Tensor:
+    """P draws m̂ + L̂ ε' from the Gaussian fitted to particles ``x`` `... x P x D`; ``noise`` ε' `P x D`."""
+    mean = x.mean(-2, keepdim=True)
+    centred = x - mean
+    cov = centred.mT @ centred / (x.shape[-2] - 1)  # ... x D x D
+    return mean + noise @ _root(symmetrize(cov)).mT
+
+
 def _particle_moments(x: Tensor) -> Gaussian:
     """Sample mean and unbiased covariance over particles: `... x P x T x D` → `... x T x D (x D)`."""
     mean = x.mean(-3)
@@ -109,9 +134,10 @@ def _particle_moments(x: Tensor) -> Gaussian:
     return Gaussian(mean, symmetrize(cov))
 
 
-def _draw_seed(seed: int, draw: int) -> int:
-    """A 32-bit seed for the base noise of one draw."""
-    return int(np.random.SeedSequence([seed, draw]).generate_state(1)[0])
+def _draw_seed(seed: int, draw: int, stream: int = 0) -> int:
+    """A 32-bit seed for one stream of the base noise of one draw."""
+    entropy = [seed, draw, stream] if stream else [seed, draw]  # stream 0 keeps the original seeds
+    return int(np.random.SeedSequence(entropy).generate_state(1)[0])
 
 
 class Particles:
@@ -129,9 +155,10 @@ class Particles:
     ``expected_reward``: score each step by E[r(x_t) | x_{t−1}], the expected reward under the
     particle's Gaussian predictive N(x_{t−1} + m, diag v), instead of r at the drawn x_t — the same
     expectation (Rao-Blackwellised; exact without angle dimensions, PILCO's moment-matched augmented
-    state with them), smooth in ψ where the drawn particles all score ~0. ``seed``:
-    of the base noise. ``dtype``: of the propagation (default: the cache's); the policy must
-    share it.
+    state with them), smooth in ψ where the drawn particles all score ~0. ``gaussian_resampling``:
+    after every step, replace the particles by draws from their fitted Gaussian (PIPPS's GR; see
+    the module docstring). ``seed``: of the base noise. ``dtype``: of the propagation (default:
+    the cache's); the policy must share it.
     """
 
     def __init__(
@@ -145,6 +172,7 @@ class Particles:
         resample_every: int = 0,
         include_noise: bool = True,
         expected_reward: bool = False,
+        gaussian_resampling: bool = False,
         seed: int = 0,
         dtype: torch.dtype | None = None,
     ) -> None:
@@ -162,9 +190,10 @@ class Particles:
         self.resample_every = int(resample_every)
         self.include_noise = include_noise
         self.expected_reward = bool(expected_reward)
+        self.gaussian_resampling = bool(gaussian_resampling)
         self.seed = int(seed)
         self.calls = 0  # evaluations of expected_return so far: they set the draw index
-        self._noise: tuple[tuple[int, int], tuple[Tensor, Tensor]] | None = None
+        self._noise: tuple[tuple[int, int], BaseNoise] | None = None
 
         # Everything that depends only on data and θ is computed here, once.
         self.model_batch_shape = data["beta"].shape[:-2]
@@ -185,8 +214,8 @@ class Particles:
             evaluation = max(self.calls - 1, 0)
         return evaluation // self.resample_every if self.resample_every else 0
 
-    def base_noise(self, horizon: int, draw: int | None = None) -> tuple[Tensor, Tensor]:
-        """ε_0 `P x D` (start) and ε_1..ε_H `H x P x E` (steps) of one draw (default: the latest)."""
+    def base_noise(self, horizon: int, draw: int | None = None) -> BaseNoise:
+        """ε_0 (start), ε_1..ε_H (steps) and, with Gaussian resampling, ε'_1..ε'_H of one draw (default: the latest)."""
         draw = self.draw_index() if draw is None else draw
         key = (draw, horizon)
         if self._noise is None or self._noise[0] != key:
@@ -196,8 +225,14 @@ class Particles:
             # draw per step, in order, so that the noise of step t does not depend on the horizon.
             start = torch.randn(shape, generator=gen, dtype=NOISE_DTYPE)
             steps = torch.stack([torch.randn(shape, generator=gen, dtype=NOISE_DTYPE) for _ in range(horizon)])
+            resampling = None
+            if self.gaussian_resampling:
+                gen = torch.Generator().manual_seed(_draw_seed(self.seed, draw, RESAMPLING_STREAM))
+                resampling = torch.stack([torch.randn(shape, generator=gen, dtype=NOISE_DTYPE)
+                                          for _ in range(horizon)])
             like = {"device": self._beta.device, "dtype": self.dtype}
-            self._noise = (key, (start.to(**like), steps.to(**like)))
+            self._noise = (key, BaseNoise(start.to(**like), steps.to(**like),
+                                          None if resampling is None else resampling.to(**like)))
         return self._noise[1]
 
     # -- propagation ----------------------------------------------------------------------------
@@ -217,7 +252,7 @@ class Particles:
         if horizon < 1:
             raise ValueError(f"horizon must be >= 1, got {horizon}")
         start = start.to(dtype=self.dtype)
-        start_noise, step_noise = self.base_noise(horizon, draw)
+        start_noise, step_noise, resampling_noise = self.base_noise(horizon, draw)
         batch = torch.broadcast_shapes(start.batch_shape, self.model_batch_shape)
         x = start.mean[..., None, :] + start_noise @ _root(start.cov).mT  # x_0 = μ_0 + L_0 ε_0
         x = x.expand(*batch, self.num_particles, self.state_dim)
@@ -236,6 +271,8 @@ class Particles:
                 means.append(x + mean.mT)
                 variances.append(var.mT)
             x = x + delta.mT
+            if resampling_noise is not None:
+                x = _gaussian_resample(x, resampling_noise[t])
             states.append(x)
             actions.append(u)
         predictive = None

@@ -15,7 +15,7 @@ from qtl.gaussian import Gaussian
 from qtl.policies import LinearPolicy, RBFPolicy, SquashedPolicy
 from qtl.policy_search import NonFiniteObjective
 from qtl.propagation import MomentMatching, Particles
-from qtl.propagation.particles import _safe_sqrt
+from qtl.propagation.particles import _gaussian_resample, _safe_sqrt
 from tests.helpers import gradcheck_value_wrt_policy_and_start, quadratic_reward
 
 DTYPE = torch.float64
@@ -92,7 +92,7 @@ def test_particles_follow_the_gp_posterior_exactly(gp_factory, posterior, includ
     horizon = 4
     with torch.no_grad():
         states, actions = particles.trajectories(start, horizon)
-        start_noise, step_noise = particles.base_noise(horizon)
+        start_noise, step_noise, _ = particles.base_noise(horizon)
         cache = gp.posterior_cache()
         features = AngleFeatures(3, (1,))
         x = start.mean + start_noise @ torch.linalg.cholesky(start.cov).mT
@@ -304,3 +304,67 @@ def test_expected_reward_gradcheck(gp_factory):
                           expected_reward=True, seed=2)
     start = Gaussian(torch.tensor([0.1, 0.3, -0.2], dtype=DTYPE), 0.02 * torch.eye(3, dtype=DTYPE))
     assert gradcheck_value_wrt_policy_and_start(policy, lambda s: particles.rollout(s, 2).value, start)
+
+
+def test_gaussian_resample_keeps_the_sample_mean_and_covariance():
+    # Whitened noise (sample mean 0, sample covariance I): the redrawn cloud has exactly the
+    # sample mean and covariance of the cloud it replaces, per batch item.
+    gen = torch.Generator().manual_seed(3)
+    x = torch.randn(2, 50, 3, generator=gen, dtype=DTYPE) @ torch.tensor([[1.0, 0.3, 0], [0, 0.5, 0.2], [0, 0, 2]],
+                                                                         dtype=DTYPE)
+    noise = torch.randn(50, 3, generator=gen, dtype=DTYPE)
+    noise = noise - noise.mean(0)
+    noise = noise @ torch.linalg.inv(torch.linalg.cholesky(torch.cov(noise.T))).mT
+    redrawn = _gaussian_resample(x, noise)
+    torch.testing.assert_close(redrawn.mean(-2), x.mean(-2), rtol=0, atol=1e-12)
+    for item in range(2):
+        torch.testing.assert_close(torch.cov(redrawn[item].T), torch.cov(x[item].T), rtol=1e-10, atol=1e-12)
+
+
+def test_gaussian_resampling_converges_to_moment_matching_over_steps(gp_factory, mc):
+    # No angles, a linear policy: moment matching's step is exact from a Gaussian, and it
+    # moment-matches after every step, as Gaussian resampling does. So over several steps the
+    # resampled particles converge to the moment-matching trajectory; plain particles do not (the
+    # state distribution stops being Gaussian). Tolerance: the last step's standard error, scaled
+    # by √steps for the independent error each earlier refit carries forward.
+    gp, policy, reward = linear_parts(gp_factory)
+    start = Gaussian(torch.tensor([0.3, -0.4], dtype=DTYPE), torch.tensor([[0.3, 0.1], [0.1, 0.2]], dtype=DTYPE))
+    steps = 6
+    with torch.no_grad():
+        exact = MomentMatching(gp, policy, reward).rollout(start, steps).states
+
+    def worst_error(gaussian_resampling: bool) -> float:
+        """The largest error of the last step's mean and covariance, in standard errors."""
+        particles = Particles(gp, policy, reward, num_particles=MANY_PARTICLES, include_noise=False,
+                              gaussian_resampling=gaussian_resampling, seed=9)
+        with torch.no_grad():
+            last = particles.trajectories(start, steps)[0][:, steps]
+        centred = last - last.mean(0)
+        products = centred[:, :, None] * centred[:, None, :]
+        mean_err = (exact.mean[steps] - last.mean(0)).abs() / (last.std(0) / MANY_PARTICLES**0.5)
+        cov_err = (exact.cov[steps] - products.mean(0)).abs() / (products.std(0) / MANY_PARTICLES**0.5)
+        return max(float(mean_err.max()), float(cov_err.max()))
+
+    limit = mc.z * steps**0.5
+    assert worst_error(True) <= limit
+    assert worst_error(False) > limit
+
+
+def test_gaussian_resampling_seeds_and_gradcheck(gp_factory):
+    gp = gp_factory(8, 2, 1, (1,), seed=41)
+    policy = SquashedPolicy(RBFPolicy(3, 1, 3, generator=torch.Generator().manual_seed(2)), 1.0)
+    reward = quadratic_reward(2, (1,))
+    start = Gaussian(torch.tensor([0.1, 0.4], dtype=DTYPE), 0.05 * torch.eye(2, dtype=DTYPE))
+
+    def objective(**kwargs):
+        return Particles(gp, policy, reward, angle_dims=(1,), num_particles=6, seed=1, **kwargs)
+
+    resampled = objective(gaussian_resampling=True)
+    value = resampled.expected_return(start, 4)
+    assert torch.equal(value, objective(gaussian_resampling=True).expected_return(start, 4))
+    assert not torch.equal(value, objective().expected_return(start, 4))
+    # The start and step noise are those of plain particles: resampling adds a stream.
+    plain_noise, noise = objective().base_noise(4), resampled.base_noise(4)
+    assert plain_noise.resampling is None and noise.resampling.shape == (4, 6, 2)
+    assert torch.equal(plain_noise.start, noise.start) and torch.equal(plain_noise.steps, noise.steps)
+    assert gradcheck_value_wrt_policy_and_start(policy, lambda s: resampled.rollout(s, 2).value, start)
