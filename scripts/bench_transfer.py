@@ -8,7 +8,8 @@ approach: episodes to success (the task's criterion; the initial episode is 0), 
 learning curve (trapezoid over the episodes), final performance (mean of the last 3 episodes)
 and time to convergence (first episode at 95 % of it), mean ± std over seeds. Required: QTL
 reaches success in fewer episodes than PILCO (median over seeds; a run that never succeeds
-counts as the budget). Writes ``docs/bench/transfer.json`` and its table in ``docs/benchmarks.md``.
+counts as the budget). Writes ``docs/bench/transfer.json`` and its table in ``docs/benchmarks.md``
+(another ``--mass``: ``transfer-m<mass>.json`` and a section of its own).
 
 The runs directory is laid out as an experiment directory (``target/<approach>/m<mass>/seed_<k>``, ``source``
 a link to the sources), so ``python scripts/report.py runs/bench_transfer`` writes the paper's Tables 1-3 and
@@ -51,6 +52,7 @@ APPROACHES = {  # name in the table: overrides of the target run (beyond transfe
 SLUG = {name: overrides[0].partition("=")[2] if overrides else "pilco" for name, overrides in APPROACHES.items()}
 DEFAULT_APPROACHES = ["pilco", "qtl_bayesian", "qtl_gamma_09"]  # the acceptance figure; --approaches all: the seven
 SOURCE_EPISODES = 7  # learned episodes of a source run (bench_cartpole's default)
+DEFAULT_MASS = 2.0  # kg, the paper's headline target
 
 
 def link_experiment(runs_dir: Path, sources: Path) -> None:
@@ -69,11 +71,17 @@ def stats(values: list[float], digits: int = 1) -> str:
     return f"{statistics.mean(values):.{digits}f} ± {statistics.stdev(values):.{digits}f}"
 
 
+def result_names(mass: float) -> tuple[str, str]:
+    """The JSON file and docs section of a target mass: the headline 2.0 kg plain, others suffixed."""
+    suffix = "" if mass == DEFAULT_MASS else f"-m{mass:g}"
+    return f"transfer{suffix}.json", f"bench_transfer{suffix}"
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
     parser.add_argument("--episodes", type=int, default=9, help="learned episodes per target run (after 1 initial)")
-    parser.add_argument("--mass", type=float, default=2.0, help="target pole mass (kg)")
+    parser.add_argument("--mass", type=float, default=DEFAULT_MASS, help="target pole mass (kg)")
     parser.add_argument("--approaches", nargs="+", default=DEFAULT_APPROACHES, choices=[*SLUG.values(), "all"])
     parser.add_argument("--jobs", type=int, default=2, help="runs in parallel (one torch thread each)")
     parser.add_argument("--sources", type=Path, default=benchlib.ROOT / "runs" / "bench_cartpole" / "cartpole")
@@ -130,7 +138,8 @@ def main() -> None:
             "overrides": overrides, "episodes_per_run": budget, "target_pole_mass": args.mass,
             "sources": str(args.sources), "required": "QTL median episodes to success < PILCO's", "passed": passed,
             "results": results}
-    out = benchlib.ROOT / "docs" / "bench" / "transfer.json"
+    json_name, section = result_names(args.mass)
+    out = benchlib.ROOT / "docs" / "bench" / json_name
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(info, indent=2) + "\n")
 
@@ -145,7 +154,7 @@ def main() -> None:
         f"learned); sources: the 0.5 kg benchmark runs of the same seeds ({SOURCE_EPISODES + 1} episodes, "
         f"default settings). Target overrides: `{' '.join(overrides) or 'none'}`. Success: tip within 0.15 m of the "
         "target for the last 2 s; episode 0 is the initial one (random for PILCO, ψ_s for QTL). AUC: trapezoid "
-        f"over the {budget} episodes. Results: `docs/bench/transfer.json`.",
+        f"over the {budget} episodes. Results: `docs/bench/{out.name}`.",
         "",
         f"**Required: QTL's median episodes to success below PILCO's — {verdict}.**",
         "",
@@ -170,7 +179,7 @@ def main() -> None:
     for name, r in results.items():
         for s in r["per_seed"]:
             lines.append(f"- {name}, seed {s['seed']}: " + " ".join(f"{v:.1f}" for v in s["returns"]))
-    benchlib.write_section("bench_transfer", "\n".join(lines))
+    benchlib.write_section(section, "\n".join(lines))
     print("\n".join(lines))
 
 

@@ -41,3 +41,9 @@ def test_every_approach_has_a_preset_and_the_runs_form_an_experiment_directory(t
     assert experiment.approaches == ["pilco", "qtl_bayesian"]
     assert sorted(experiment.sources) == [0, 1]
     assert experiment.cell("qtl_bayesian", "m2.0").curves[1].returns == [10.0, 11.0]
+
+
+def test_each_target_mass_keeps_its_own_results():
+    assert bench_transfer.result_names(2.0) == ("transfer.json", "bench_transfer")
+    assert bench_transfer.result_names(1.5) == ("transfer-m1.5.json", "bench_transfer-m1.5")
+    assert bench_transfer.result_names(0.8) == ("transfer-m0.8.json", "bench_transfer-m0.8")
