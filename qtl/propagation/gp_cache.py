@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Sequence
 from typing import Any
 
@@ -10,6 +11,8 @@ from torch import Tensor
 
 from qtl.features import AngleFeatures
 from qtl.models import GPPosteriorCache
+
+log = logging.getLogger(__name__)
 
 
 def _tensors(cache: GPPosteriorCache) -> dict[str, Tensor]:
@@ -52,6 +55,7 @@ def propagation_inputs(
     """
     data = cache_tensors(model)
     dtype = dtype or data["inputs"].dtype
+    _warn_if_imprecise(data, dtype)
     data = {k: v.detach().to(dtype) for k, v in data.items()}
     state_dim = data["beta"].shape[-2]
     features = AngleFeatures(state_dim, angle_dims)
@@ -65,3 +69,29 @@ def propagation_inputs(
     if reward.state_dim != state_dim:
         raise ValueError(f"reward is for {reward.state_dim}-D states, the GP predicts {state_dim}-D")
     return data, features, dtype
+
+
+def variance_roundoff_bound(data: dict[str, Tensor], dtype: torch.dtype) -> Tensor:
+    """Bound on the round-off of the latent variance α² − k (K + σ_ε²I)⁻¹ kᵀ in ``dtype``, per output `... x E`.
+
+    ‖k‖² <= n α⁴ and ‖(K + σ_ε²I)⁻¹‖ <= 1/σ_ε², so the quadratic form, and with it the difference, is
+    off by up to ε n α⁴ / σ_ε² (ε: the dtype's machine epsilon).
+    """
+    n = data["inputs"].shape[-2]
+    noise = data["noise_variance"]
+    return torch.finfo(dtype).eps * n * data["signal_variance"].square() / noise
+
+
+def _warn_if_imprecise(data: dict[str, Tensor], dtype: torch.dtype) -> None:
+    """Warn when ``dtype`` cannot resolve the GP's predictive variance down to its noise variance σ_ε²."""
+    bound = variance_roundoff_bound(data, dtype)
+    bad = bound > data["noise_variance"]
+    if bool(bad.any()):
+        worst = float((bound / data["noise_variance"]).max())
+        log.warning(
+            "propagation in %s: the GP's latent variance may be off by up to %.3g × its noise variance "
+            "(round-off bound ε n α⁴/σ_ε², signal-to-noise α²/σ_ε² up to %.3g at n = %d); predictive variances "
+            "and the rollouts built on them are unreliable: use dtype=float64",
+            str(dtype).removeprefix("torch."), worst,
+            float((data["signal_variance"] / data["noise_variance"]).max()), data["inputs"].shape[-2],
+        )
