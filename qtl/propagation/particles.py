@@ -89,10 +89,11 @@ class _GPPredictive(torch.autograd.Function):
         weighted = (kern @ K_inv).mul_(kern)  # k K⁻¹ ∘ k
         quad = weighted.sum(-1)  # k K⁻¹ kᵀ
         var = signal_variance[..., None] - quad
-        # ∂k_n/∂z = k_n (d_n − z): ∂m/∂z = Σ_n β_n k_n (d_n − z), ∂v/∂z = −2 Σ_n (k K⁻¹)_n k_n (d_n − z).
-        grad_mean = kern.mul_(beta[..., None, :]) @ data - z * mean[..., None]
-        grad_var = (weighted @ data - z * quad[..., None]).mul_(-2.0)
-        ctx.save_for_backward(grad_mean, grad_var)
+        if ctx.needs_input_grad[0]:
+            # ∂k_n/∂z = k_n (d_n − z): ∂m/∂z = Σ_n β_n k_n (d_n − z), ∂v/∂z = −2 Σ_n (k K⁻¹)_n k_n (d_n − z).
+            grad_mean = kern.mul_(beta[..., None, :]) @ data - z * mean[..., None]
+            grad_var = (weighted @ data - z * quad[..., None]).mul_(-2.0)
+            ctx.save_for_backward(grad_mean, grad_var)
         return mean, var
 
     @staticmethod
