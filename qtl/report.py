@@ -462,6 +462,15 @@ def tables_markdown(experiment: Experiment) -> list[str]:
 # ---- figures -----------------------------------------------------------------------------------
 
 
+def legend_entries(axes: Any) -> tuple[list[Any], list[str]]:
+    """Handles and labels of every panel, each label once in order of appearance: one legend for all panels."""
+    entries: dict[str, Any] = {}
+    for ax in axes:
+        for handle, label in zip(*ax.get_legend_handles_labels(), strict=True):
+            entries.setdefault(label, handle)
+    return list(entries.values()), list(entries)
+
+
 def plot_learning_curves(experiment: Experiment, stem: Path, reference: tuple[str, float] | None = None) -> list[Path]:
     """Figs. 1-3: mean total reward per episode ±1 std over seeds, one panel per label; saved as ``stem``.png/.pdf.
 
@@ -486,7 +495,7 @@ def plot_learning_curves(experiment: Experiment, stem: Path, reference: tuple[st
         ax.set_xlabel("episode")
         ax.grid(alpha=0.3)
     axes[0].set_ylabel("total reward")
-    axes[0].legend(fontsize="small")
+    axes[0].legend(*legend_entries(axes), fontsize="small")
     paths = [stem.with_suffix(f".{fmt}") for fmt in FIGURE_FORMATS]
     for path in paths:
         fig.savefig(path, dpi=FIGURE_DPI)

@@ -10,8 +10,9 @@ from pathlib import Path
 
 import pytest
 import yaml
+from matplotlib.figure import Figure
 
-from qtl.report import autopilot_return, discover, label_order, write_report
+from qtl.report import autopilot_return, discover, label_order, legend_entries, write_report
 
 REPO = Path(__file__).resolve().parents[1]
 NAN = math.nan
@@ -235,3 +236,15 @@ def test_cli_prints_the_report_path(tmp_path):
     assert done.returncode == 0, done.stderr
     assert done.stdout.strip() == str(tmp_path / "out" / "report.md")
     assert "| PILCO (γ = 0) | 33.00 ± 4.24 | 2 |" in (tmp_path / "out" / "report.md").read_text()
+
+
+def test_one_legend_names_the_approaches_of_every_panel():
+    # An approach run on the second target only (the 2.0 kg column of seven beside a 1.5 kg column of
+    # three) must still be named: the legend on the first panel gathers every panel's entries once.
+    first, second = Figure().subplots(1, 2)
+    first.plot([0, 1], label="PILCO")
+    second.plot([0, 1], label="PILCO")
+    second.plot([1, 0], label="Policy transfer")
+    handles, labels = legend_entries([first, second])
+    assert labels == ["PILCO", "Policy transfer"]
+    assert len(handles) == 2
