@@ -78,16 +78,13 @@ def variance_roundoff_bound(data: dict[str, Tensor], dtype: torch.dtype) -> Tens
     off by up to ε n α⁴ / σ_ε² (ε: the dtype's machine epsilon).
     """
     n = data["inputs"].shape[-2]
-    noise = data["noise_variance"]
-    return torch.finfo(dtype).eps * n * data["signal_variance"].square() / noise
+    return torch.finfo(dtype).eps * n * data["signal_variance"].square() / data["noise_variance"]
 
 
 def _warn_if_imprecise(data: dict[str, Tensor], dtype: torch.dtype) -> None:
     """Warn when ``dtype`` cannot resolve the GP's predictive variance down to its noise variance σ_ε²."""
-    bound = variance_roundoff_bound(data, dtype)
-    bad = bound > data["noise_variance"]
-    if bool(bad.any()):
-        worst = float((bound / data["noise_variance"]).max())
+    worst = float((variance_roundoff_bound(data, dtype) / data["noise_variance"]).max())
+    if worst > 1.0:
         log.warning(
             "propagation in %s: the GP's latent variance may be off by up to %.3g × its noise variance "
             "(round-off bound ε n α⁴/σ_ε², signal-to-noise α²/σ_ε² up to %.3g at n = %d); predictive variances "
