@@ -121,10 +121,8 @@ def _root(cov: Tensor) -> Tensor:
 
 def _gaussian_resample(x: Tensor, noise: Tensor) -> Tensor:
     """P draws m̂ + L̂ ε' from the Gaussian fitted to particles ``x`` `... x P x D`; ``noise`` ε' `P x D`."""
-    mean = x.mean(-2, keepdim=True)
-    centred = x - mean
-    cov = centred.mT @ centred / (x.shape[-2] - 1)  # ... x D x D
-    return mean + noise @ _root(symmetrize(cov)).mT
+    fitted = _particle_moments(x[..., None, :])  # one time step: mean `... x 1 x D`, cov `... x 1 x D x D`
+    return fitted.mean + noise @ _root(fitted.cov[..., 0, :, :]).mT
 
 
 def _particle_moments(x: Tensor) -> Gaussian:
@@ -133,6 +131,11 @@ def _particle_moments(x: Tensor) -> Gaussian:
     centred = x - mean[..., None, :, :]
     cov = torch.einsum("...ptd,...pte->...tde", centred, centred) / (x.shape[-3] - 1)
     return Gaussian(mean, symmetrize(cov))
+
+
+def _per_step_noise(gen: torch.Generator, shape: tuple[int, int], horizon: int) -> Tensor:
+    """``horizon`` standard normal draws of ``shape``, one per step in order: `H x ...` (float64)."""
+    return torch.stack([torch.randn(shape, generator=gen, dtype=NOISE_DTYPE) for _ in range(horizon)])
 
 
 def _draw_seed(seed: int, draw: int, stream: int = 0) -> int:
@@ -225,12 +228,11 @@ class Particles:
             # Drawn in float64 whatever the dtype, so that every dtype sees the same numbers; one
             # draw per step, in order, so that the noise of step t does not depend on the horizon.
             start = torch.randn(shape, generator=gen, dtype=NOISE_DTYPE)
-            steps = torch.stack([torch.randn(shape, generator=gen, dtype=NOISE_DTYPE) for _ in range(horizon)])
+            steps = _per_step_noise(gen, shape, horizon)
             resampling = None
             if self.gaussian_resampling:
                 gen = torch.Generator().manual_seed(_draw_seed(self.seed, draw, RESAMPLING_STREAM))
-                resampling = torch.stack([torch.randn(shape, generator=gen, dtype=NOISE_DTYPE)
-                                          for _ in range(horizon)])
+                resampling = _per_step_noise(gen, shape, horizon)
             like = {"device": self._beta.device, "dtype": self.dtype}
             self._noise = (key, BaseNoise(start.to(**like), steps.to(**like),
                                           None if resampling is None else resampling.to(**like)))
