@@ -99,6 +99,7 @@ SEARCH_EPISODE = 1  # the search's generator is the one the loop's first learned
 MODEL_FIT_RESTARTS = 1
 DATA_VERSION = 1  # bump when the data or the fit change, to invalidate cached models
 MAX_RECORDED_WARNINGS = 5
+PRODUCT_REPEATS = 20  # timed variance products (the particles' arithmetic floor) after one warm-up
 CACHE_DIR = benchlib.ROOT / "runs" / "bench_policy_search"
 DEFAULT_OUTPUT = benchlib.ROOT / "docs" / "bench" / "policy_search.json"
 SECTION = "bench_policy_search"
@@ -116,6 +117,14 @@ DESCRIPTION = (
     "search; torch.optim's one-off lazy import, ~1 s, is paid before, as the loop's GP fit pays it before its "
     "first search). Each configuration runs in a fresh subprocess; peak RSS is its `getrusage` max RSS (torch, "
     "GPyTorch and the model included). Evaluations: objective calls of the search (rollout + gradient each)."
+)
+
+FLOOR_DESCRIPTION = (
+    "Particles' arithmetic floor: each step needs, per output and particle, the latent variance "
+    "α² − k (K + σ_ε²I)⁻¹ kᵀ and its gradient, i.e. the rows k (K + σ_ε²I)⁻¹: one `E x P x n` by `E x n x n` "
+    "product, E P n² multiply-adds (two triangular solves with the Cholesky factor cost as many), whatever else an "
+    "implementation of the exact GP does. That product alone, measured on this machine (random matrices of the "
+    f"row's shapes and dtype, median of {PRODUCT_REPEATS} after a warm-up), H times per evaluation:"
 )
 
 
@@ -219,6 +228,23 @@ def rollout_and_gradient(propagator: Any, start: Any, horizon: int) -> float:
     return float(value.detach())
 
 
+def variance_product_s(num_outputs: int, num_particles: int, n: int, dtype: torch.dtype,
+                       device: torch.device) -> float:
+    """Median time of one step's `E x P x n` by `E x n x n` product k (K + σ_ε²I)⁻¹ (the particles' GEMM)."""
+    kern = torch.randn(num_outputs, num_particles, n, dtype=dtype, device=device)
+    k_inv = torch.randn(num_outputs, n, n, dtype=dtype, device=device)
+    times = []
+    for _ in range(PRODUCT_REPEATS + 1):
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+        tic = time.perf_counter()
+        kern @ k_inv
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+        times.append(time.perf_counter() - tic)
+    return statistics.median(times[1:])
+
+
 def measure(job: dict[str, Any]) -> dict[str, Any]:
     """Measure one (propagator, n, dtype) in this process; a failure is recorded, not raised."""
     torch.set_num_threads(job["threads"])
@@ -258,6 +284,11 @@ def measure(job: dict[str, Any]) -> dict[str, Any]:
                 times.append(time.perf_counter() - tic)
             result.update(rollout_grad_s_median=statistics.median(times), rollout_grad_s_min=min(times),
                           repeats=job["repeats"])
+            if job["propagator"] == "particles":
+                # The arithmetic no implementation of the exact per-particle variance avoids: H products.
+                stage = "variance product"
+                product = variance_product_s(task.state_dim, cfg.propagation.num_particles, job["n"], dtype, device)
+                result["variance_products_s_per_evaluation"] = task.horizon * product
 
             # -- One policy search, timed as the loop times it (lines 6-9). --------------------------
             if not job["skip_search"]:
@@ -321,6 +352,23 @@ def settings_lines(results: list[dict[str, Any]]) -> list[str]:
     return lines
 
 
+def floor_lines(results: list[dict[str, Any]]) -> list[str]:
+    """Per particle row: the time of its variance products alone, per evaluation and for the target's steps."""
+    lines = []
+    for r in results:
+        if "variance_products_s_per_evaluation" not in r:
+            continue
+        per_evaluation = r["variance_products_s_per_evaluation"]
+        steps = r["optimizer"]["steps"] * r["optimizer"]["restarts"]
+        share = f", {per_evaluation / r['rollout_grad_s_median']:.0%} of its rollout + gradient" \
+            if "rollout_grad_s_median" in r else ""
+        target = TARGETS.get(("particles", r["n"]))
+        against = f" (target {target:.0f} s)" if target is not None else ""
+        lines.append(f"- n = {r['n']}, {r['dtype']}: {per_evaluation:.3f} s per evaluation{share}; "
+                     f"{steps * per_evaluation:.1f} s for {steps} steps{against}")
+    return lines
+
+
 def markdown(results: list[dict[str, Any]], info: dict[str, Any]) -> str:
     """The section of docs/benchmarks.md."""
     m = info["machine"]
@@ -356,6 +404,9 @@ def markdown(results: list[dict[str, Any]], info: dict[str, Any]) -> str:
         )
     if errors:
         lines += ["", "Errors:", "", *errors]
+    floors = floor_lines(results)
+    if floors:
+        lines += ["", FLOOR_DESCRIPTION, "", *floors]
     lines += ["", "Quoted in issue 8 for context — not measured here, other machines:", ""]
     lines += [f"- {ref}" for ref in QUOTED_REFERENCES]
     return "\n".join(lines)

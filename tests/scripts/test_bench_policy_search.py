@@ -39,6 +39,11 @@ def test_smallest_configuration_measures_both_propagators_without_touching_docs(
         assert row["rollout_grad_s_median"] > 0 and row["search_s"] > 0 and row["peak_rss_mib"] > 0
         assert row["evaluations"] >= 3
         assert row["met"] == "—"  # no target at n = 60
+    mm, particles = report["results"]
+    assert "variance_products_s_per_evaluation" not in mm
+    # The particles' floor: H products, each a part of what one rollout + gradient does.
+    assert 0 < particles["variance_products_s_per_evaluation"] < particles["rollout_grad_s_median"]
+    assert "arithmetic floor" in done.stdout and "s for 3 steps" in done.stdout
     assert not report["judged"]
     assert report["models"]["60"]["n"] == 60 and list((tmp_path / "cache").glob("*.pt"))
     assert "## Policy search" in done.stdout and "not measured here" in done.stdout
