@@ -359,13 +359,15 @@ def floor_lines(results: list[dict[str, Any]]) -> list[str]:
         if "variance_products_s_per_evaluation" not in r:
             continue
         per_evaluation = r["variance_products_s_per_evaluation"]
-        steps = r["optimizer"]["steps"] * r["optimizer"]["restarts"]
+        optimizer = r["optimizer"]
+        # The search's evaluations where it ran, else the configured Adam steps (L-BFGS has no fixed count).
+        steps = r.get("evaluations") or optimizer.get("steps", 0) * optimizer.get("restarts", 1)
         share = f", {per_evaluation / r['rollout_grad_s_median']:.0%} of its rollout + gradient" \
             if "rollout_grad_s_median" in r else ""
         target = TARGETS.get(("particles", r["n"]))
         against = f" (target {target:.0f} s)" if target is not None else ""
-        lines.append(f"- n = {r['n']}, {r['dtype']}: {per_evaluation:.3f} s per evaluation{share}; "
-                     f"{steps * per_evaluation:.1f} s for {steps} steps{against}")
+        search = f"; {steps * per_evaluation:.1f} s for {steps} steps{against}" if steps else ""
+        lines.append(f"- n = {r['n']}, {r['dtype']}: {per_evaluation:.3f} s per evaluation{share}{search}")
     return lines
 
 
