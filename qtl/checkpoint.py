@@ -11,14 +11,13 @@ from typing import Any
 import numpy as np
 import torch
 
+from qtl.errors import CheckpointError
+
 CHECKPOINT_DIR = "checkpoints"
 CHECKPOINT_FORMAT = "qtl.run"
 CHECKPOINT_VERSION = 1
 _NAME = re.compile(r"^episode_(\d{4})\.pt$")
 
-
-class CheckpointError(ValueError):
-    """A run directory or checkpoint that cannot be resumed from; the message says why."""
 
 
 def rng_state() -> dict[str, Any]:

@@ -10,14 +10,12 @@ from pathlib import Path
 import yaml
 
 from qtl.checkpoint import CHECKPOINT_DIR
+from qtl.errors import RunMismatch
 
 # Overrides that do not change what a run computes (``episodes`` only says how far it goes: runs
 # are causal, so a run extended by resuming equals one made longer from the start).
 NEUTRAL_OVERRIDES = ("hydra.run.dir=", "progress=", "threads=", "episodes=")
 
-
-class RunMismatch(RuntimeError):
-    """A run directory exists but was made by other overrides."""
 
 
 def effective(overrides: list[str]) -> list[str]:

@@ -23,17 +23,16 @@ from tqdm.contrib.logging import logging_redirect_tqdm
 
 from qtl.checkpoint import (
     CHECKPOINT_DIR,
-    CheckpointError,
     latest_checkpoint,
     load_checkpoint,
     save_checkpoint,
     set_rng_state,
 )
 from qtl.data import TransitionDataset, gp_training_pairs
+from qtl.errors import CheckpointError, NonFiniteObjective
 from qtl.features import AngleFeatures
 from qtl.models import DynamicsGP, GPHyperparameters, SparseDynamicsGP
 from qtl.policies import Policy, SquashedPolicy
-from qtl.policy_search import NonFiniteObjective
 from qtl.recorder import BASE_COLUMNS, RunRecorder, theta_columns, theta_row, trajectory_figure
 from qtl.rewards import ExpectedSaturatingReward
 from qtl.seeding import seed_everything

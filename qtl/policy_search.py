@@ -10,14 +10,13 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
+from qtl.errors import NonFiniteObjective
+
 log = logging.getLogger(__name__)
 
 # Parameters with a spread below this are perturbed on this scale instead.
 MIN_PERTURBATION_SCALE = 1e-3
 
-
-class NonFiniteObjective(RuntimeError):
-    """The predicted return or its gradient was NaN or inf; the step that produced it is rejected."""
 
 
 @dataclass(frozen=True)

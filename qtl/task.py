@@ -12,11 +12,8 @@ import torch
 
 import envs  # noqa: F401  (registers the qtl/ environment ids)
 from envs.rewards import SaturatingReward, augment_angles
+from qtl.errors import TaskError
 from qtl.gaussian import Gaussian
-
-
-class TaskError(ValueError):
-    """A task configuration that cannot work; the message says what to fix."""
 
 
 @dataclass(frozen=True)

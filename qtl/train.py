@@ -11,8 +11,9 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
-from qtl.checkpoint import CheckpointError, latest_checkpoint, load_checkpoint
+from qtl.checkpoint import latest_checkpoint, load_checkpoint
 from qtl.config import TrainConfig, register_configs
+from qtl.errors import CheckpointError
 from qtl.loop import DTYPES, RunResult, run
 
 log = logging.getLogger(__name__)

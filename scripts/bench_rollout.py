@@ -30,9 +30,10 @@ import benchlib
 from envs.rewards import SaturatingReward
 from qtl.features import AngleFeatures
 from qtl.gaussian import Gaussian
+from qtl.kernels import moments as kernel_moments
 from qtl.models import DynamicsGP
 from qtl.policies import RBFPolicy, SquashedPolicy
-from qtl.propagation import MomentMatching, kernel_moments
+from qtl.propagation import MomentMatching
 from qtl.rewards import ExpectedSaturatingReward
 
 HORIZON = 50

@@ -9,9 +9,9 @@ from pathlib import Path
 import pytest
 import torch
 
-from qtl.checkpoint import CheckpointError, latest_checkpoint, load_checkpoint
+from qtl.checkpoint import latest_checkpoint, load_checkpoint
+from qtl.errors import CheckpointError, TaskError
 from qtl.loop import resolve_device, run
-from qtl.task import TaskError
 from tests.helpers import tiny_config
 
 

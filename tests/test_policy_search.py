@@ -8,7 +8,8 @@ import pytest
 import torch
 from torch import nn
 
-from qtl.policy_search import AdamSearch, LBFGSSearch, NonFiniteObjective
+from qtl.errors import NonFiniteObjective
+from qtl.policy_search import AdamSearch, LBFGSSearch
 
 
 class Point(nn.Module):

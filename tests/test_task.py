@@ -7,7 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from qtl.task import Task, TaskError
+from qtl.errors import TaskError
+from qtl.task import Task
 
 CARTPOLE = {
     "name": "cartpole",

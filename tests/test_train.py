@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from qtl.checkpoint import CheckpointError
+from qtl.errors import CheckpointError
 from qtl.loop import run
 from qtl.train import resume_config
 from tests.helpers import tiny_config

@@ -6,8 +6,8 @@ import torch
 from torch import Tensor, nn
 
 from qtl.gaussian import GaussianMap
+from qtl.kernels import SEKernelMoments
 from qtl.policies.base import Policy
-from qtl.propagation.kernel_moments import SEKernelMoments
 
 # The policy's pseudo-GP has fixed hyper-parameters (PILCO): signal variance 1 and noise
 # variance σ_π² = 0.01, which regularises the weights β_π = (K_π + σ_π²I)⁻¹ y_π.

@@ -1,7 +1,6 @@
 """Long-term prediction: propagate a state distribution through policy and GP (Eq. 4)."""
 
-from qtl.propagation.kernel_moments import SEKernelMoments, weighted_exp_sum
 from qtl.propagation.moment_matching import MomentMatching, Rollout
 from qtl.propagation.particles import Particles
 
-__all__ = ["MomentMatching", "Particles", "Rollout", "SEKernelMoments", "weighted_exp_sum"]
+__all__ = ["MomentMatching", "Particles", "Rollout"]

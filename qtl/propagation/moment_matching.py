@@ -23,9 +23,9 @@ import torch
 from torch import Tensor
 
 from qtl.gaussian import Gaussian, GaussianMap, MomentMatch, symmetrize
+from qtl.kernels import SEKernelMoments
 from qtl.models.dynamics_gp import GPPosteriorCache
 from qtl.propagation.gp_cache import propagation_inputs
-from qtl.propagation.kernel_moments import SEKernelMoments
 from qtl.rewards import ExpectedSaturatingReward
 
 if TYPE_CHECKING:

@@ -36,9 +36,9 @@ import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
+from qtl.errors import NonFiniteObjective
 from qtl.gaussian import Gaussian, symmetrize
 from qtl.models.dynamics_gp import GPPosteriorCache
-from qtl.policy_search import NonFiniteObjective
 from qtl.propagation.gp_cache import propagation_inputs
 from qtl.propagation.moment_matching import Rollout
 from qtl.rewards import ExpectedSaturatingReward

@@ -1,8 +1,9 @@
 """Qualitative transfer (Section 4): θ_s and ψ_s from a source run, updating rules, task compliance."""
 
+from qtl.errors import RuleError, TransferError
 from qtl.transfer.compliance import Compliance, leave_one_out, task_compliance
-from qtl.transfer.rules import Bayesian, Forgetting, Free, HyperparameterRule, NoTransfer, RuleError
-from qtl.transfer.source import SourceRun, TransferError
+from qtl.transfer.rules import Bayesian, Forgetting, Free, HyperparameterRule, NoTransfer
+from qtl.transfer.source import SourceRun
 
 __all__ = [
     "Bayesian",

@@ -10,12 +10,13 @@ from typing import Any
 import torch
 from torch import nn
 
+from qtl.errors import TransferError
 from qtl.features import AngleFeatures
 from qtl.models import DynamicsGP, GPHyperparameters
 from qtl.task import Task
 from qtl.transfer.compliance import task_compliance
 from qtl.transfer.rules import HyperparameterRule
-from qtl.transfer.source import SourceRun, TransferError
+from qtl.transfer.source import SourceRun
 
 log = logging.getLogger(__name__)
 

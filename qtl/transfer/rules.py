@@ -19,13 +19,11 @@ from typing import Any
 
 from torch import Tensor
 
+from qtl.errors import RuleError
 from qtl.models import GPHyperparameters
 
 SPACES = ("log", "natural")
 
-
-class RuleError(ValueError):
-    """A rule's setting is invalid (e.g. γ outside [0, 1]); the message names it."""
 
 
 def _check_space(space: str) -> str:

@@ -10,15 +10,12 @@ import torch
 from omegaconf import OmegaConf
 from torch import Tensor
 
-from qtl.checkpoint import CheckpointError, latest_checkpoint, load_checkpoint
+from qtl.checkpoint import latest_checkpoint, load_checkpoint
 from qtl.data import TransitionDataset, gp_training_pairs
+from qtl.errors import CheckpointError, TaskError, TransferError
 from qtl.features import AngleFeatures
 from qtl.models import DynamicsGP, GPHyperparameters
-from qtl.task import Task, TaskError
-
-
-class TransferError(ValueError):
-    """A source run that cannot be transferred to this target, or an inconsistent transfer config."""
+from qtl.task import Task
 
 
 @dataclass(frozen=True)

@@ -10,10 +10,10 @@ from hydra import compose, initialize_config_module
 from hydra.utils import instantiate
 
 from qtl.config import register_configs
+from qtl.errors import NonFiniteObjective
 from qtl.features import AngleFeatures
 from qtl.gaussian import Gaussian
 from qtl.policies import LinearPolicy, RBFPolicy, SquashedPolicy
-from qtl.policy_search import NonFiniteObjective
 from qtl.propagation import MomentMatching, Particles
 from qtl.propagation.particles import _gaussian_resample, _safe_sqrt
 from tests.helpers import gradcheck_value_wrt_policy_and_start, quadratic_reward

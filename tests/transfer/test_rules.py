@@ -8,8 +8,9 @@ import math
 import pytest
 import torch
 
+from qtl.errors import RuleError
 from qtl.models import GPHyperparameters
-from qtl.transfer import Bayesian, Forgetting, Free, NoTransfer, RuleError
+from qtl.transfer import Bayesian, Forgetting, Free, NoTransfer
 from qtl.transfer.rules import from_space, to_space
 
 

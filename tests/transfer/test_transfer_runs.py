@@ -12,11 +12,12 @@ import torch
 from omegaconf import OmegaConf
 
 from qtl.checkpoint import latest_checkpoint, load_checkpoint
+from qtl.errors import TransferError
 from qtl.features import AngleFeatures
 from qtl.loop import initial_policy, run
 from qtl.models import GPHyperparameters
 from qtl.task import Task
-from qtl.transfer import Bayesian, SourceRun, TransferError
+from qtl.transfer import Bayesian, SourceRun
 from qtl.transfer.source import _stored_theta
 from tests.helpers import tiny_config
 

@@ -10,8 +10,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from qtl.gaussian import Gaussian
+from qtl.kernels import SEKernelMoments, weighted_exp_sum
 from qtl.models import GPPosteriorCache
-from qtl.propagation import SEKernelMoments, weighted_exp_sum
 
 DTYPE = torch.float64
 NUM_SAMPLES = 100_000
