@@ -2,11 +2,11 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import torch
 from torch import Tensor
-
-from qtl.features import AngleFeatures
 
 
 class TransitionDataset:
@@ -92,8 +92,14 @@ class TransitionDataset:
 
 
 def gp_training_pairs(
-    data: TransitionDataset, features: AngleFeatures, dtype: torch.dtype, device: torch.device | str = "cpu"
+    data: TransitionDataset,
+    features: Callable[[Tensor], Tensor],
+    dtype: torch.dtype,
+    device: torch.device | str = "cpu",
 ) -> tuple[Tensor, Tensor]:
-    """Inputs [φ(x_t), u_t] `n x (D + K + F)` and targets Δ_t `n x D` on ``device`` (Section 3.3)."""
+    """Inputs [φ(x_t), u_t] `n x (D + K + F)` and targets Δ_t `n x D` on ``device`` (Section 3.3).
+
+    ``features``: φ, raw states `n x D` to `n x (D + K)` (e.g. :class:`qtl.features.AngleFeatures`).
+    """
     x, u, delta = data.tensors(dtype, device)
     return torch.cat([features(x), u], dim=-1), delta

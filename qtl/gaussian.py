@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -61,24 +61,10 @@ class Gaussian:
     def sample(self, num_samples: int, generator: torch.Generator | None = None) -> Tensor:
         """Draw samples `num_samples x ... x D`; a singular (PSD) covariance is allowed."""
         batch = self.batch_shape
-        cov = self.expand().cov
         # A symmetric square root tolerates singular covariances, unlike a Cholesky factor.
-        eigval, eigvec = torch.linalg.eigh(0.5 * (cov + cov.mT))
-        root = eigvec * eigval.clamp_min(0.0).sqrt()[..., None, :]
+        root = symmetric_root(self.expand().cov)
         noise = torch.randn((num_samples, *batch, self.dim), generator=generator, dtype=self.dtype).to(self.mean.device)
         return self.mean + (root @ noise[..., None]).squeeze(-1)
-
-    @classmethod
-    def stack(cls, states: Sequence[Gaussian], dim: int = 0) -> Gaussian:
-        """Stack distributions of equal batch shape along a new batch dimension."""
-        if dim < 0:
-            raise ValueError("stack along a non-negative batch dimension")
-        batch = torch.broadcast_shapes(*(s.batch_shape for s in states))
-        d = states[0].dim
-        return cls(
-            torch.stack([s.mean.expand(*batch, d) for s in states], dim=dim),
-            torch.stack([s.cov.expand(*batch, d, d) for s in states], dim=dim),
-        )
 
 
 @dataclass(frozen=True)
@@ -109,6 +95,35 @@ GaussianMap = Callable[[Gaussian], MomentMatch]
 def symmetrize(cov: Tensor) -> Tensor:
     """(Σ + Σᵀ)/2 for `... x D x D`: removes round-off asymmetry."""
     return 0.5 * (cov + cov.mT)
+
+
+def symmetric_root(cov: Tensor) -> Tensor:
+    """The PSD square root L = V Λ^{1/2} (L Lᵀ = Σ) of a symmetric PSD `... x D x D`; singular Σ allowed."""
+    eigval, eigvec = torch.linalg.eigh(symmetrize(cov))
+    return eigvec * eigval.clamp_min(0.0).sqrt()[..., None, :]
+
+
+def matrix_root(cov: Tensor) -> Tensor:
+    """L with L Lᵀ = Σ for `... x D x D`: the Cholesky factor, or :func:`symmetric_root` if any Σ is singular."""
+    chol, info = torch.linalg.cholesky_ex(cov)
+    if bool((info == 0).all()):
+        return chol
+    return symmetric_root(cov)
+
+
+def sample_moments(samples: Tensor, dim: int = -2) -> Gaussian:
+    """Sample mean and unbiased covariance over the sample dimension ``dim`` of `... x D` (not the last).
+
+    E.g. particles `... x P x D` give mean `... x D` and cov `... x D x D`; paths `... x P x T x D`
+    with ``dim=-3`` give mean `... x T x D` and cov `... x T x D x D`.
+    """
+    if samples.dim() < 2 or dim % samples.dim() == samples.dim() - 1:
+        raise ValueError(f"samples must be `... x D` with the sample dimension {dim} before D, "
+                         f"got {tuple(samples.shape)}")
+    mean = samples.mean(dim)
+    centred = (samples - mean.unsqueeze(dim)).movedim(dim, -2)  # ... x P x D
+    cov = torch.einsum("...pd,...pe->...de", centred, centred) / (samples.shape[dim] - 1)
+    return Gaussian(mean, symmetrize(cov))
 
 
 def compose(inner: MomentMatch, outer: MomentMatch) -> MomentMatch:

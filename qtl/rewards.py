@@ -8,9 +8,10 @@ from the same declarative spec the environments use (``envs.rewards.SaturatingRe
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any
+from typing import Protocol
 
 import torch
+from numpy.typing import ArrayLike
 from torch import Tensor
 
 from qtl.features import AngleFeatures
@@ -18,6 +19,30 @@ from qtl.gaussian import Gaussian
 
 # Eigenvalues of W below this fraction of the largest are treated as zero (W is PSD).
 WEIGHT_RANK_TOL = 1e-12
+
+
+class RewardSpec(Protocol):
+    """A declarative saturating reward (as ``envs.rewards.SaturatingReward``): what :meth:`from_spec` reads."""
+
+    @property
+    def state_dim(self) -> int:
+        """D, the raw state dimension."""
+        ...
+
+    @property
+    def angle_dims(self) -> Sequence[int]:
+        """The angle dimensions of the raw state."""
+        ...
+
+    @property
+    def target(self) -> Sequence[float]:
+        """y* `D + K`, in augmented coordinates."""
+        ...
+
+    @property
+    def weight_matrix(self) -> ArrayLike:
+        """W `(D + K) x (D + K)` with the width folded in."""
+        ...
 
 
 class ExpectedSaturatingReward:
@@ -32,7 +57,7 @@ class ExpectedSaturatingReward:
         state_dim: int,
         angle_dims: Sequence[int],
         target: Sequence[float] | Tensor,
-        weight_matrix: Sequence[Sequence[float]] | Tensor | Any,
+        weight_matrix: ArrayLike | Tensor,
     ) -> None:
         self.features = AngleFeatures(state_dim, angle_dims)
         aug = self.features.output_dim
@@ -55,7 +80,7 @@ class ExpectedSaturatingReward:
         self.factor = eigval[keep].sqrt()[:, None] * eigvec[:, keep].mT
 
     @classmethod
-    def from_spec(cls, spec: Any) -> ExpectedSaturatingReward:
+    def from_spec(cls, spec: RewardSpec) -> ExpectedSaturatingReward:
         """Build from any object with ``state_dim``, ``angle_dims``, ``target``, ``weight_matrix``."""
         return cls(spec.state_dim, spec.angle_dims, spec.target, spec.weight_matrix)
 

@@ -1,11 +1,11 @@
-"""Gaussian state type: shapes, batching, sampling, and joint-Gaussian chaining."""
+"""Gaussian state type: shapes, batching, sampling, matrix roots, sample moments, and joint-Gaussian chaining."""
 
 from __future__ import annotations
 
 import pytest
 import torch
 
-from qtl.gaussian import Gaussian, MomentMatch, compose
+from qtl.gaussian import Gaussian, MomentMatch, compose, matrix_root, sample_moments, symmetric_root
 
 DTYPE = torch.float64
 
@@ -15,8 +15,6 @@ def test_shapes_and_batch_broadcast():
     assert g.dim == 2 and g.batch_shape == (3,) and g.dtype == DTYPE
     item = g[1]
     assert item.mean.shape == (2,) and item.cov.shape == (2, 2)
-    stacked = Gaussian.stack([g, g], dim=0)
-    assert stacked.mean.shape == (2, 3, 2) and stacked.cov.shape == (2, 3, 2, 2)
 
 
 @pytest.mark.parametrize(("mean_shape", "cov_shape"), [((2,), (3, 3)), ((), ()), ((4, 2), (3, 2, 2))])
@@ -48,3 +46,34 @@ def test_compose_of_linear_maps_is_exact():
     both = compose(first, second)
     torch.testing.assert_close(both.cross_cov, cov @ (b @ a).T)
     torch.testing.assert_close(both.gain, (b @ a).T)
+
+
+def test_matrix_root_is_cholesky_or_the_symmetric_root_of_a_singular_cov():
+    gen = torch.Generator().manual_seed(2)
+    root = torch.randn(2, 3, 3, generator=gen, dtype=DTYPE)
+    full = root @ root.mT + 0.1 * torch.eye(3, dtype=DTYPE)  # `2 x 3 x 3`, positive definite
+    torch.testing.assert_close(matrix_root(full), torch.linalg.cholesky(full), rtol=0, atol=0)
+    singular = full.clone()
+    singular[1] = torch.diag(torch.tensor([0.5, 0.0, 2.0], dtype=DTYPE))  # one item singular: all take eigh
+    roots = matrix_root(singular)
+    torch.testing.assert_close(roots @ roots.mT, singular)
+    torch.testing.assert_close(roots, symmetric_root(singular), rtol=0, atol=0)
+    assert not torch.allclose(roots[0], torch.linalg.cholesky(full[0]))  # not triangular: the symmetric root
+
+
+@pytest.mark.parametrize("dim", [-2, -3, 0])
+def test_sample_moments_are_the_sample_mean_and_unbiased_covariance(dim):
+    gen = torch.Generator().manual_seed(3)
+    x = torch.randn(6, 4, 2, 3, generator=gen, dtype=DTYPE)  # the sample dimension is `dim`
+    fitted = sample_moments(x, dim=dim)
+    moved = x.movedim(dim, 0)  # P x ... x D
+    assert fitted.mean.shape == moved.shape[1:] and fitted.cov.shape == (*moved.shape[1:], 3)
+    torch.testing.assert_close(fitted.mean, moved.mean(0))
+    flat = moved.flatten(1, -2)  # P x B x D
+    for item in range(flat.shape[1]):
+        torch.testing.assert_close(fitted.cov.flatten(0, -3)[item], torch.cov(flat[:, item].T))
+
+
+def test_sample_moments_reject_the_event_dimension():
+    with pytest.raises(ValueError, match="sample dimension"):
+        sample_moments(torch.zeros(5, 3), dim=-1)

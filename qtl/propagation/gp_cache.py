@@ -4,18 +4,21 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
-from typing import Any
 
 import torch
 from torch import Tensor
 
 from qtl.features import AngleFeatures
 from qtl.models import GPPosteriorCache
+from qtl.policies.base import Policy
+from qtl.propagation.base import DynamicsSource
+from qtl.rewards import ExpectedSaturatingReward
 
 log = logging.getLogger(__name__)
 
 
 def _tensors(cache: GPPosteriorCache) -> dict[str, Tensor]:
+    """One cache's tensors by name: inputs, (K + σ_ε²I)⁻¹, β and θ."""
     theta = cache.hyperparameters
     return {
         "inputs": cache.inputs,  # n x D
@@ -27,7 +30,7 @@ def _tensors(cache: GPPosteriorCache) -> dict[str, Tensor]:
     }
 
 
-def cache_tensors(model: GPPosteriorCache | Sequence[GPPosteriorCache] | Any) -> dict[str, Tensor]:
+def cache_tensors(model: DynamicsSource) -> dict[str, Tensor]:
     """Tensors of a ``DynamicsGP`` (anything with ``posterior_cache()``), a cache, or caches stacked as `M`."""
     if hasattr(model, "posterior_cache"):
         model = model.posterior_cache()
@@ -42,9 +45,9 @@ def cache_tensors(model: GPPosteriorCache | Sequence[GPPosteriorCache] | Any) ->
 
 
 def propagation_inputs(
-    model: GPPosteriorCache | Sequence[GPPosteriorCache] | Any,
-    policy: Any,
-    reward: Any,
+    model: DynamicsSource,
+    policy: Policy,
+    reward: ExpectedSaturatingReward,
     angle_dims: Sequence[int],
     dtype: torch.dtype | None,
 ) -> tuple[dict[str, Tensor], AngleFeatures, torch.dtype]:

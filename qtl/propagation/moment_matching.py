@@ -16,39 +16,20 @@ covariance of Δ at every step instead.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
 
 import torch
 from torch import Tensor
 
 from qtl.gaussian import Gaussian, GaussianMap, MomentMatch, symmetrize
 from qtl.kernels import SEKernelMoments
-from qtl.models.dynamics_gp import GPPosteriorCache
+from qtl.policies.base import Policy
+from qtl.propagation.base import DynamicsSource, Rollout
 from qtl.propagation.gp_cache import propagation_inputs
 from qtl.rewards import ExpectedSaturatingReward
 
-if TYPE_CHECKING:
-    from qtl.policies.base import Policy
-
-
-@dataclass(frozen=True)
-class Rollout:
-    """A predicted trajectory: V = Σ_{t=1..H} E[r(x_t)] and the per-step distributions.
-
-    ``value`` `...` (Eq. 4, successor states x_1..x_H scored), ``rewards`` `... x H`,
-    ``states`` mean `... x (H+1) x D` and cov `... x (H+1) x D x D` (x_0..x_H), ``actions``
-    mean `... x H x F` and cov `... x H x F x F` (u_0..u_{H−1}).
-    """
-
-    value: Tensor
-    rewards: Tensor
-    states: Gaussian
-    actions: Gaussian
-
 
 class MomentMatching:
-    """Propagates Gaussian state distributions through a policy and a GP dynamics model.
+    """Propagates Gaussian state distributions through a policy and a GP dynamics model (a :class:`Propagator`).
 
     ``model``: a :class:`~qtl.models.GPPosteriorCache` (or anything with ``posterior_cache()``),
     or a sequence of caches of equal sizes, stacked as a leading batch dimension `M` that
@@ -62,7 +43,7 @@ class MomentMatching:
 
     def __init__(
         self,
-        model: GPPosteriorCache | Sequence[GPPosteriorCache] | Any,
+        model: DynamicsSource,
         policy: Policy,
         reward: ExpectedSaturatingReward,
         *,

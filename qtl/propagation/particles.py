@@ -29,22 +29,19 @@ moment-matched, as moment matching does, which keeps the reparameterisation grad
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import TYPE_CHECKING, Any, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 import torch
 from torch import Tensor
-from torch.autograd.function import once_differentiable
 
 from qtl.errors import NonFiniteObjective
-from qtl.gaussian import Gaussian, symmetrize
-from qtl.models.dynamics_gp import GPPosteriorCache
+from qtl.gaussian import Gaussian, matrix_root, sample_moments
+from qtl.kernels import gp_predictive
+from qtl.policies.base import Policy
+from qtl.propagation.base import DynamicsSource, Rollout
 from qtl.propagation.gp_cache import propagation_inputs
-from qtl.propagation.moment_matching import Rollout
 from qtl.rewards import ExpectedSaturatingReward
-
-if TYPE_CHECKING:
-    from qtl.policies.base import Policy
 
 # Fewest particles: the per-step covariance needs two.
 MIN_PARTICLES = 2
@@ -65,72 +62,16 @@ class BaseNoise(NamedTuple):
     resampling: Tensor | None
 
 
-class _GPPredictive(torch.autograd.Function):
-    """Per-output GP mean k β and latent variance α² − k (K + σ_ε²I)⁻¹ kᵀ at points (Eq. 1-2).
-
-    ``z`` `... x E x P x D` are the points over ℓ_a, ``data`` `... x E x n x D` the training
-    inputs over ℓ_a, ``data_sq`` `... x E x n` their squared norms, ``beta`` `... x E x n`,
-    ``K_inv`` `... x E x n x n` (symmetric), ``signal_variance`` `... x E` (α²). Returns mean
-    and variance `... x E x P`. Each output's mean and variance depend on z only through that
-    output's row, so the forward pass also forms their gradients w.r.t. z (`... x E x P x D`)
-    and keeps only those: no `P x n` tensor outlives its step, and backward is two products.
-    Gradients flow to ``z`` only (the data are fixed during policy search).
-    """
-
-    @staticmethod
-    def forward(  # type: ignore[override]
-        ctx, z: Tensor, data: Tensor, data_sq: Tensor, beta: Tensor, K_inv: Tensor, signal_variance: Tensor
-    ) -> tuple[Tensor, Tensor]:
-        # log k = log α² − ½‖z − d‖², formed in place; ‖z − d‖² >= 0 up to round-off.
-        log_kern = torch.matmul(z, data.mT)  # ... x E x P x n
-        log_kern.sub_(0.5 * z.square().sum(-1, keepdim=True)).sub_(0.5 * data_sq[..., None, :])
-        kern = log_kern.clamp_max_(0.0).add_(signal_variance.log()[..., None, None]).exp_()
-        mean = (kern @ beta[..., None]).squeeze(-1)
-        weighted = (kern @ K_inv).mul_(kern)  # k K⁻¹ ∘ k
-        quad = weighted.sum(-1)  # k K⁻¹ kᵀ
-        var = signal_variance[..., None] - quad
-        if ctx.needs_input_grad[0]:
-            # ∂k_n/∂z = k_n (d_n − z): ∂m/∂z = Σ_n β_n k_n (d_n − z), ∂v/∂z = −2 Σ_n (k K⁻¹)_n k_n (d_n − z).
-            grad_mean = kern.mul_(beta[..., None, :]) @ data - z * mean[..., None]
-            grad_var = (weighted @ data - z * quad[..., None]).mul_(-2.0)
-            ctx.save_for_backward(grad_mean, grad_var)
-        return mean, var
-
-    @staticmethod
-    @once_differentiable
-    def backward(ctx, grad_mean: Tensor, grad_var: Tensor) -> tuple[Tensor | None, ...]:  # type: ignore[override]
-        mean_z, var_z = ctx.saved_tensors
-        grad_z = mean_z * grad_mean[..., None] + var_z * grad_var[..., None]
-        return grad_z, None, None, None, None, None
-
-
 def _safe_sqrt(var: Tensor) -> Tensor:
     """√v elementwise for v >= 0, exactly 0 with a zero (not NaN) gradient where v <= the floor."""
     positive = var > SQRT_VARIANCE_FLOOR
     return torch.where(positive, var.clamp_min(SQRT_VARIANCE_FLOOR).sqrt(), torch.zeros_like(var))
 
 
-def _root(cov: Tensor) -> Tensor:
-    """L with L Lᵀ = Σ for `... x D x D`: Cholesky, or the symmetric root of a singular (PSD) Σ."""
-    chol, info = torch.linalg.cholesky_ex(cov)
-    if bool((info == 0).all()):
-        return chol
-    eigval, eigvec = torch.linalg.eigh(symmetrize(cov))
-    return eigvec * eigval.clamp_min(0.0).sqrt()[..., None, :]
-
-
 def _gaussian_resample(x: Tensor, noise: Tensor) -> Tensor:
     """P draws m̂ + L̂ ε' from the Gaussian fitted to particles ``x`` `... x P x D`; ``noise`` ε' `P x D`."""
-    fitted = _particle_moments(x[..., None, :])  # one time step: mean `... x 1 x D`, cov `... x 1 x D x D`
-    return fitted.mean + noise @ _root(fitted.cov[..., 0, :, :]).mT
-
-
-def _particle_moments(x: Tensor) -> Gaussian:
-    """Sample mean and unbiased covariance over particles: `... x P x T x D` → `... x T x D (x D)`."""
-    mean = x.mean(-3)
-    centred = x - mean[..., None, :, :]
-    cov = torch.einsum("...ptd,...pte->...tde", centred, centred) / (x.shape[-3] - 1)
-    return Gaussian(mean, symmetrize(cov))
+    fitted = sample_moments(x)  # mean `... x D`, cov `... x D x D`
+    return fitted.mean[..., None, :] + noise @ matrix_root(fitted.cov).mT
 
 
 def _per_step_noise(gen: torch.Generator, shape: tuple[int, int], horizon: int) -> Tensor:
@@ -167,7 +108,7 @@ class Particles:
 
     def __init__(
         self,
-        model: GPPosteriorCache | Sequence[GPPosteriorCache] | Any,
+        model: DynamicsSource,
         policy: Policy,
         reward: ExpectedSaturatingReward,
         *,
@@ -257,15 +198,15 @@ class Particles:
         start = start.to(dtype=self.dtype)
         start_noise, step_noise, resampling_noise = self.base_noise(horizon, draw)
         batch = torch.broadcast_shapes(start.batch_shape, self.model_batch_shape)
-        x = start.mean[..., None, :] + start_noise @ _root(start.cov).mT  # x_0 = μ_0 + L_0 ε_0
+        x = start.mean[..., None, :] + start_noise @ matrix_root(start.cov).mT  # x_0 = μ_0 + L_0 ε_0
         x = x.expand(*batch, self.num_particles, self.state_dim)
         states, actions, means, variances = [x], [], [], []
         for t in range(horizon):
             y = self.features(x)  # ... x P x (D + K), exact per particle
             u = self.policy(y)  # ... x P x F
             z = torch.cat([y, u], dim=-1)[..., None, :, :] * self._inv_lengthscales  # ... x E x P x D_in
-            mean, var = _GPPredictive.apply(z, self._data, self._data_sq, self._beta, self._K_inv,
-                                            self._signal_variance)  # ... x E x P (Eq. 1-2)
+            mean, var = gp_predictive(z, self._data, self._data_sq, self._beta, self._K_inv,
+                                      self._signal_variance)  # ... x E x P (Eq. 1-2)
             var = var.clamp_min(0.0)  # round-off can make the latent variance slightly negative
             if self.include_noise:
                 var = var + self._noise_variance[..., None]
@@ -289,7 +230,7 @@ class Particles:
         ``states`` and ``actions`` are the particles' per-step sample means and (unbiased)
         covariances. Uses the base noise of the latest evaluation unless ``draw`` is given, and
         does not count as an evaluation. A non-finite V raises
-        :class:`~qtl.policy_search.NonFiniteObjective`.
+        :class:`~qtl.errors.NonFiniteObjective`.
         """
         states, actions, predictive = self._paths(start, horizon, draw)
         if self.expected_reward:
@@ -309,8 +250,8 @@ class Particles:
         return Rollout(
             value=value,
             rewards=per_particle.mean(-2),
-            states=_particle_moments(states),
-            actions=_particle_moments(actions),
+            states=sample_moments(states, dim=-3),
+            actions=sample_moments(actions, dim=-3),
         )
 
     def expected_return(self, start: Gaussian, horizon: int) -> Tensor:

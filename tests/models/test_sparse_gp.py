@@ -8,10 +8,11 @@ import pytest
 import torch
 
 from qtl.gaussian import Gaussian
+from qtl.kernels import SEKernelMoments
 from qtl.models import DynamicsGP, SparseDynamicsGP
 from qtl.models.dynamics_gp import exact_gp_settings
 from qtl.policies import LinearPolicy, SquashedPolicy
-from qtl.propagation import MomentMatching, SEKernelMoments
+from qtl.propagation import MomentMatching
 from qtl.transfer import leave_one_out, task_compliance
 from tests.helpers import quadratic_reward
 

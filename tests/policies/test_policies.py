@@ -176,26 +176,10 @@ class _Moments(torch.nn.Module):
         return self.policy.moments(state)
 
 
-@pytest.mark.parametrize("kind", KINDS)
-def test_psi_round_trip(kind):
-    source, target = make_policy(kind, seed=1), make_policy(kind, seed=2)
-    x = torch.randn(5, 3, dtype=DTYPE)
-    target.set_psi(source.get_psi())
-    with torch.no_grad():
-        torch.testing.assert_close(target(x), source(x))
-    psi = source.get_psi()
-    assert all(not v.requires_grad for v in psi.values())
-    with pytest.raises(ValueError, match="names"):
-        target.set_psi({"nope": torch.zeros(1)})
-    first = next(iter(psi))
-    with pytest.raises(ValueError, match="shape"):
-        target.set_psi({**psi, first: torch.zeros(99)})
-
-
 def test_rbf_psi_is_the_paper_parameters():
-    names = set(make_rbf().get_psi())
+    names = {name for name, _ in make_rbf().named_parameters()}
     assert names == {"support_points", "targets", "log_lengthscales"}
-    assert set(SquashedPolicy(make_rbf(), 1.0).get_psi()) == {f"policy.{n}" for n in names}
+    assert {name for name, _ in SquashedPolicy(make_rbf(), 1.0).named_parameters()} == {f"policy.{n}" for n in names}
 
 
 @settings(max_examples=25, deadline=None)
