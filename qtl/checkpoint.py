@@ -19,7 +19,6 @@ CHECKPOINT_VERSION = 1
 _NAME = re.compile(r"^episode_(\d{4})\.pt$")
 
 
-
 def rng_state() -> dict[str, Any]:
     """The global RNG states of Python, numpy and torch, as tensors and primitives."""
     kind, keys, pos, has_gauss, cached = np.random.get_state()  # noqa: NPY002
@@ -77,9 +76,16 @@ def load_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:  # torch raises many types for a damaged file
-        raise CheckpointError(f"corrupt checkpoint {str(path)!r}: {err}") from err
+        raise CheckpointError(f"corrupt checkpoint {str(path)!r}: {type(err).__name__}: {_first_sentence(err)} "
+                              "(delete it to resume from the checkpoint before)") from err
     if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT:
         raise CheckpointError(f"{str(path)!r} is not a qtl run checkpoint")
     if state.get("version") != CHECKPOINT_VERSION:
         raise CheckpointError(f"{str(path)!r} has unsupported version {state.get('version')!r}")
     return state
+
+
+def _first_sentence(err: Exception) -> str:
+    """The first sentence of an error's message, on one line (torch's load errors run over many lines)."""
+    lines = str(err).strip().splitlines()
+    return lines[0].split(". ")[0].rstrip(".") if lines else "no message"

@@ -10,6 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
+from qtl.recorder import METRICS_FILE
+
 FINAL_EPISODES = 3  # final performance: mean total reward of the last 3 episodes
 CONVERGED_FRACTION = 0.95  # time to convergence: first episode reaching 95 % of the final performance
 
@@ -51,7 +53,7 @@ class Curve:
     @classmethod
     def read(cls, run_dir: str | os.PathLike, episodes: int | None = None) -> Curve:
         """The first ``episodes`` episodes of a run (all by default); runs are causal, so a prefix is a shorter run."""
-        with open(Path(run_dir) / "metrics.csv", newline="") as f:
+        with open(Path(run_dir) / METRICS_FILE, newline="") as f:
             rows = list(csv.DictReader(f))
         if episodes is not None:
             if len(rows) < episodes:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import csv
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -17,7 +17,9 @@ from torch.utils.tensorboard import SummaryWriter
 
 from qtl.models import GPHyperparameters
 
-METRICS_FILE = "metrics.csv"
+METRICS_FILE = "metrics.csv"  # the one spelling: qtl.metrics, qtl.report and the scripts import it
+THETA_PREFIX = "theta"  # θ_i, what the episode's model used
+THETA_P_PREFIX = "theta_p"  # θ_p_i, what evidence maximisation found
 # Wall times differ between identical runs, so they live apart from metrics.csv (which same seed
 # reproduces exactly).
 TIMINGS_FILE = "timings.csv"
@@ -38,18 +40,27 @@ BASE_COLUMNS = [
 ]
 
 
-def theta_columns(num_outputs: int, input_dim: int, prefix: str = "theta") -> list[str]:
+def theta_columns(num_outputs: int, input_dim: int, prefix: str = THETA_PREFIX) -> list[str]:
     """``<prefix>/out{j}/lengthscale/in{i}``, ``…/signal_variance``, ``…/noise_variance`` column names.
 
     ``theta``: θ_i, what the episode's model used; ``theta_p``: θ_p_i, what evidence maximisation found.
     """
-    names = [f"lengthscale/in{i}" for i in range(input_dim)] + ["signal_variance", "noise_variance"]
-    return [f"{prefix}/out{j}/{n}" for j in range(num_outputs) for n in names]
+    return [f"{prefix}/{key}" for key in GPHyperparameters.keys(num_outputs, input_dim)]
 
 
-def theta_row(theta: GPHyperparameters | None, prefix: str = "theta") -> dict[str, float]:
+def theta_row(theta: GPHyperparameters | None, prefix: str = THETA_PREFIX) -> dict[str, float]:
     """θ as ``{column: value}`` (empty when there is no model yet)."""
     return {} if theta is None else {f"{prefix}/{k}": v for k, v in theta.as_dict().items()}
+
+
+def theta_from_row(row: Mapping[str, float | str], prefix: str = THETA_PREFIX) -> GPHyperparameters | None:
+    """θ back from a metrics row's ``<prefix>/…`` columns (the inverse of :func:`theta_row`); None if they are empty.
+
+    ``row`` is a row as recorded (floats) or as read back from ``metrics.csv`` (strings, empty where no model).
+    """
+    start = f"{prefix}/"
+    values = {k: v for k, v in row.items() if k.startswith(start) and v not in (None, "")}
+    return GPHyperparameters.from_dict(values, start) if values else None
 
 
 class RunRecorder:
@@ -97,7 +108,7 @@ class RunRecorder:
             "time/model_fit_s": timings["model_fit_s"],
             "time/policy_search_s": timings["policy_search_s"],
         }
-        tags.update({k: v for k, v in row.items() if k.startswith(("theta/", "theta_p/"))})
+        tags.update({k: v for k, v in row.items() if k.startswith((f"{THETA_PREFIX}/", f"{THETA_P_PREFIX}/"))})
         for tag, value in tags.items():
             if value is not None and value != "" and math.isfinite(float(value)):
                 self.writer.add_scalar(tag, float(value), step)
@@ -123,10 +134,21 @@ def _append_csv(path: Path, columns: Sequence[str], row: dict[str, Any]) -> None
 
 
 def trajectory_figure(
-    predicted_mean: np.ndarray, predicted_std: np.ndarray, real: np.ndarray, title: str
+    predicted_mean: np.ndarray,
+    predicted_std: np.ndarray,
+    real: np.ndarray,
+    title: str,
+    state_names: Sequence[str] | None = None,
 ) -> plt.Figure:
-    """Predicted mean ± 2 std `T+1 x D` against the real states `T'+1 x D`, one panel per dimension."""
+    """Predicted mean ± 2 std `T+1 x D` against the real states `T'+1 x D`, one panel per dimension.
+
+    ``state_names`` label the D panels (default ``x[0]`` … ``x[D-1]``).
+    """
     dims = real.shape[1]
+    if state_names is None:
+        state_names = [f"x[{d}]" for d in range(dims)]
+    elif len(state_names) != dims:
+        raise ValueError(f"{len(state_names)} state names for {dims} state dimensions")
     fig, axes = plt.subplots(dims, 1, figsize=(6, 1.8 * dims), sharex=True, squeeze=False)
     steps = np.arange(predicted_mean.shape[0])
     for d, ax in enumerate(axes[:, 0]):
@@ -134,7 +156,7 @@ def trajectory_figure(
                         predicted_mean[:, d] + 2 * predicted_std[:, d], alpha=0.3, label="predicted ± 2σ")
         ax.plot(steps, predicted_mean[:, d], label="predicted mean")
         ax.plot(np.arange(real.shape[0]), real[:, d], "k.-", markersize=3, label="real")
-        ax.set_ylabel(f"x[{d}]")
+        ax.set_ylabel(state_names[d])
     axes[0, 0].set_title(title)
     axes[0, 0].legend(loc="best", fontsize="small")
     axes[-1, 0].set_xlabel("step")

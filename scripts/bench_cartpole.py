@@ -27,6 +27,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import benchlib
 
 from qtl.launch import ensure_run
+from qtl.metrics import first_success
+from qtl.recorder import METRICS_FILE, TIMINGS_FILE
 
 REQUIRED_EPISODES = 8  # success within this many episodes, the random one included (--within)
 REQUIRED_SEEDS = 4  # in at least this many of ...
@@ -41,18 +43,17 @@ def read_csv(path: Path) -> list[dict[str, str]]:
 def run_seed(seed: int, episodes: int, run_dir: Path, overrides: list[str], threads: int = 1) -> dict:
     """One full learning run through the CLI (reused or resumed when there is one); its per-episode figures."""
     wall = ensure_run([f"seed={seed}", f"episodes={episodes}", *overrides], run_dir, episodes + 1, threads=threads)
-    rows = read_csv(run_dir / "metrics.csv")[: episodes + 1]
-    timings = read_csv(run_dir / "timings.csv")[: episodes + 1]
+    rows = read_csv(run_dir / METRICS_FILE)[: episodes + 1]
+    timings = read_csv(run_dir / TIMINGS_FILE)[: episodes + 1]
     learned = [t for t, r in zip(timings, rows, strict=True) if r["kind"] == "policy"]
     successes = [int(r["success"]) for r in rows]
-    first = next((i for i, s in enumerate(successes) if s), None)
     return {
         "seed": seed,
         "run_dir": str(run_dir),
         "returns": [float(r["return"]) for r in rows],
         "predicted_returns": [float(r["predicted_return"]) for r in rows],
         "successes": successes,
-        "first_success": first,
+        "first_success": first_success(successes),
         "model_fit_s_per_episode": sum(float(t["model_fit_s"]) for t in learned) / max(len(learned), 1),
         "policy_search_s_per_episode": sum(float(t["policy_search_s"]) for t in learned) / max(len(learned), 1),
         "wall_s": wall,  # of this call: 0 for a reused run, the resumed part only for a resumed one

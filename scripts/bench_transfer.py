@@ -3,7 +3,8 @@
 Per seed, the source is the 0.5 kg learning-loop benchmark's run of that seed
 (``runs/bench_cartpole/cartpole/seed_<k>``, made by ``scripts/bench_cartpole.py``; created here with
 the same command when missing). Every approach then learns the 2.0 kg target through the real CLI
-with the same budget and overrides; QTL runs take θ_s and ψ_s from the seed's source. Reported per
+with the same budget and overrides (the presets of ``qtl.report.APPROACHES``, named as in the paper); QTL runs
+take θ_s and ψ_s from the seed's source. Reported per
 approach: episodes to success (the task's criterion; the initial episode is 0), area under the
 learning curve (trapezoid over the episodes), final performance (mean of the last 3 episodes)
 and time to convergence (first episode at 95 % of it), mean ± std over seeds. Required: QTL
@@ -34,22 +35,21 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import benchlib
-import yaml
 
 from qtl.launch import ensure_run
 from qtl.metrics import Curve
-from qtl.report import EXPERIMENT_FILE, SOURCE_DIR, TARGET_DIR
+from qtl.recorder import TIMINGS_FILE
+from qtl.report import (
+    APPROACHES,
+    DEFAULT_APPROACH,
+    SEED_PREFIX,
+    SOURCE_DIR,
+    TARGET_DIR,
+    ExperimentRecord,
+    approach_name,
+    approach_overrides,
+)
 
-APPROACHES = {  # name in the table: overrides of the target run (beyond transfer.source); the paper's seven
-    "PILCO": [],
-    "Hyper-parameters transfer": ["approach=hyperparameters_transfer"],
-    "QTL γ = 0.9": ["approach=qtl_gamma_09"],
-    "QTL γ = 0.5": ["approach=qtl_gamma_05"],
-    "QTL γ = 1": ["approach=qtl_gamma_1"],
-    "QTL Bayesian": ["approach=qtl_bayesian"],
-    "Policy transfer": ["approach=policy_transfer"],
-}
-SLUG = {name: overrides[0].partition("=")[2] if overrides else "pilco" for name, overrides in APPROACHES.items()}
 DEFAULT_APPROACHES = ["pilco", "qtl_bayesian", "qtl_gamma_09"]  # the acceptance figure; --approaches all: the seven
 SOURCE_EPISODES = 7  # learned episodes of a source run (bench_cartpole's default)
 DEFAULT_MASS = 2.0  # kg, the paper's headline target
@@ -60,8 +60,7 @@ def link_experiment(runs_dir: Path, sources: Path) -> None:
     link = runs_dir / SOURCE_DIR
     if not link.exists():
         link.symlink_to(sources.resolve(), target_is_directory=True)
-    (runs_dir / EXPERIMENT_FILE).write_text(yaml.safe_dump({"name": "cartpole transfer benchmark",
-                                                            "commands": [benchlib.command_line()]}))
+    ExperimentRecord(name="cartpole transfer benchmark", commands=[benchlib.command_line()]).write(runs_dir)
 
 
 def stats(values: list[float], digits: int = 1) -> str:
@@ -82,55 +81,57 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
     parser.add_argument("--episodes", type=int, default=9, help="learned episodes per target run (after 1 initial)")
     parser.add_argument("--mass", type=float, default=DEFAULT_MASS, help="target pole mass (kg)")
-    parser.add_argument("--approaches", nargs="+", default=DEFAULT_APPROACHES, choices=[*SLUG.values(), "all"])
+    parser.add_argument("--approaches", nargs="+", default=DEFAULT_APPROACHES, choices=[*APPROACHES, "all"])
     parser.add_argument("--jobs", type=int, default=2, help="runs in parallel (one torch thread each)")
     parser.add_argument("--sources", type=Path, default=benchlib.ROOT / "runs" / "bench_cartpole" / "cartpole")
     parser.add_argument("--runs-dir", type=Path, default=benchlib.ROOT / "runs" / "bench_transfer")
     args, overrides = parser.parse_known_args()
-    approaches = [name for name, slug in SLUG.items() if slug in args.approaches or "all" in args.approaches]
+    approaches = [slug for slug in APPROACHES if slug in args.approaches or "all" in args.approaches]
 
     def source(seed: int) -> Path:
-        return args.sources / f"seed_{seed}"
+        return args.sources / f"{SEED_PREFIX}{seed}"
 
-    def target_dir(name: str, seed: int) -> Path:  # the layout of an experiment directory (qtl.report)
-        return args.runs_dir / TARGET_DIR / SLUG[name] / f"m{args.mass}" / f"seed_{seed}"
+    def target_dir(slug: str, seed: int) -> Path:  # the layout of an experiment directory (qtl.report)
+        return args.runs_dir / TARGET_DIR / slug / f"m{args.mass}" / f"{SEED_PREFIX}{seed}"
 
     def make_source(seed: int) -> float:
         return ensure_run([f"seed={seed}", f"episodes={SOURCE_EPISODES}"], source(seed), SOURCE_EPISODES + 1)
 
     def target(job: tuple[str, int]) -> tuple[str, int, float]:
-        name, seed = job
-        run_dir = target_dir(name, seed)
-        transfer = [f"transfer.source={source(seed)}"] if APPROACHES[name] else []
+        slug, seed = job
+        run_dir = target_dir(slug, seed)
+        transfer = [f"transfer.source={source(seed)}"] if slug != DEFAULT_APPROACH else []
         run = [f"seed={seed}", f"episodes={args.episodes}", f"task.env.pole_mass={args.mass}", *overrides,
-               *APPROACHES[name], *transfer]
-        return name, seed, ensure_run(run, run_dir, args.episodes + 1)
+               *approach_overrides(slug), *transfer]
+        return slug, seed, ensure_run(run, run_dir, args.episodes + 1)
 
-    jobs = [(name, seed) for seed in args.seeds for name in approaches]  # seed-major: partial results pair up
+    jobs = [(slug, seed) for seed in args.seeds for slug in approaches]  # seed-major: partial results pair up
     with ThreadPoolExecutor(max_workers=args.jobs) as pool:
-        if any(APPROACHES[name] for name in approaches):
+        if any(slug != DEFAULT_APPROACH for slug in approaches):
             list(pool.map(make_source, args.seeds))  # sources first: every QTL run of a seed reads its own
-        walls = {(name, seed): wall for name, seed, wall in pool.map(target, jobs)}
+        walls = {(slug, seed): wall for slug, seed, wall in pool.map(target, jobs)}
 
     link_experiment(args.runs_dir, args.sources)
     budget = args.episodes + 1
     results = {}
-    for name in approaches:
+    for slug in approaches:
         per_seed = []
         for seed in args.seeds:
-            run_dir = target_dir(name, seed)
+            run_dir = target_dir(slug, seed)
             curve = Curve.read(run_dir, budget)
-            with open(run_dir / "timings.csv", newline="") as f:
+            with open(run_dir / TIMINGS_FILE, newline="") as f:
                 search = [float(t["policy_search_s"]) for t in csv.DictReader(f)][1:budget]
             per_seed.append({"seed": seed, "run_dir": str(run_dir), "returns": curve.returns,
                              "policy_search_s_per_episode": statistics.mean(search),
                              "successes": [int(s) for s in curve.successes], "compliance": curve.compliance,
-                             "wall_s_this_call": walls[(name, seed)], **curve.summary()})
+                             "wall_s_this_call": walls[(slug, seed)], **curve.summary()})
         to_success = [r["first_success"] if r["first_success"] is not None else budget for r in per_seed]
-        results[name] = {"per_seed": per_seed, "median_episodes_to_success": statistics.median(to_success),
-                         "solved": sum(r["first_success"] is not None for r in per_seed)}
-    judged = "PILCO" in results and len(args.seeds) >= 5
-    pilco = results.get("PILCO", {}).get("median_episodes_to_success")
+        results[approach_name(slug)] = {"per_seed": per_seed,
+                                        "median_episodes_to_success": statistics.median(to_success),
+                                        "solved": sum(r["first_success"] is not None for r in per_seed)}
+    baseline = approach_name(DEFAULT_APPROACH)
+    judged = baseline in results and len(args.seeds) >= 5
+    pilco = results.get(baseline, {}).get("median_episodes_to_success")
     passed = {name: r["median_episodes_to_success"] < pilco for name, r in results.items()
               if name.startswith("QTL") and pilco is not None} if judged else {}
 

@@ -8,7 +8,9 @@ its seed): two sweeps, so no target starts before its source exists. Both are Hy
 the preset's launcher (``hydra/launcher=local``: joblib, one torch thread per job; ``slurm`` and
 ``ray`` presets exist for clusters). Presets set ``resume=auto``, so a repeated command continues
 its runs instead of redoing them. ``--quick`` uses the reduced presets (``<name>_quick``: 2 seeds,
-5 episodes, PILCO vs QTL Bayesian). Then ``scripts/report.py`` writes ``<root>/report/``.
+5 episodes, PILCO vs QTL Bayesian). Then, for the helicopter (the aircraft experiment), the
+autopilot's total reward is recorded in ``<root>/experiment.yaml`` as the reference line of Fig. 3,
+and ``qtl.report`` writes ``<root>/report/``.
 Extra arguments are Hydra overrides for both sweeps (e.g. ``sweep.root=... hydra.launcher.n_jobs=4``).
 """
 
@@ -21,11 +23,10 @@ import sys
 import time
 from pathlib import Path
 
-import yaml
 from hydra import compose, initialize_config_module
 
 from qtl.config import register_configs
-from qtl.report import write_report
+from qtl.report import EXPERIMENT_FILE, REPORT_DIR, ExperimentRecord, record_reference, write_report
 
 EXPERIMENTS = ("cartpole", "mountaincar", "aircraft")
 
@@ -39,6 +40,7 @@ def sweep_root(preset: str, overrides: list[str]) -> Path:
 
 
 def main() -> None:
+    """Record the experiment, run both sweeps, record the reference line, write the report."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("experiment", choices=EXPERIMENTS)
     parser.add_argument("--quick", action="store_true", help="the reduced preset (2 seeds, 5 episodes)")
@@ -49,13 +51,16 @@ def main() -> None:
                 (f"{name}_source", name)]
     root.mkdir(parents=True, exist_ok=True)
     shown = [shlex.join(["qtl-train", *c[3:]]) for c in commands]
-    (root / "experiment.yaml").write_text(yaml.safe_dump({"name": args.experiment, "commands": shown}))
+    ExperimentRecord(name=args.experiment, commands=shown).write(root)
     for stage, (command, line) in enumerate(zip(commands, shown, strict=True), start=1):
         print(f"[{stage}/2] {line}", flush=True)
         tic = time.perf_counter()
         subprocess.run(command, check=True)
         print(f"[{stage}/2] done in {time.perf_counter() - tic:.0f} s", flush=True)
-    print(f"report: {write_report(root, root / 'report')}")
+    reference = record_reference(root)
+    if reference is not None:
+        print(f"reference: {reference.name} total reward {reference.total:.2f} (in {root / EXPERIMENT_FILE})")
+    print(f"report: {write_report(root, root / REPORT_DIR)}")
 
 
 if __name__ == "__main__":

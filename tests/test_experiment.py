@@ -8,10 +8,17 @@ import sys
 from pathlib import Path
 
 import pytest
+import yaml
+
+from qtl.report import ExperimentRecord, autopilot_return
+from tests.helpers import BUDGET
+from tests.report.fakes import write_run
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
+import run_experiment
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ["episodes=1", "task.env.horizon=6", "task.success.last_steps=2", "task.policy_size=4",
-        "optimizer.max_iter=2", "optimizer.restarts=1", "model.restarts=1", "model.max_iter=3"]
 
 
 @pytest.fixture(scope="module")
@@ -55,3 +62,30 @@ def test_report_of_the_sweep(quick_cartpole):
     assert "qtl-train experiment=cartpole_quick_source" in report
     assert json.loads((root / "report" / "tables.json").read_text())
     assert (root / "report" / "fig_learning_curves.png").stat().st_size > 0
+
+
+def test_the_aircraft_driver_records_the_autopilot_line_before_the_report(tmp_path, monkeypatch):
+    # The two sweeps are stood in for: stage 2 leaves helicopter runs as the aircraft_quick preset would.
+    root = tmp_path / "aircraft_quick"
+    helicopter = {"id": "qtl/Helicopter-v0"}  # task.horizon: the quick preset's 6 s episodes (60 steps)
+    stages = []
+
+    def sweep(command: list[str], check: bool) -> None:
+        stages.append(command[3])
+        if command[3] == "experiment=aircraft_quick":
+            for approach in ("pilco", "qtl_bayesian"):
+                write_run(root / "target" / approach / "helicopter" / "seed_0", [0.0, 20.0, 30.0],
+                          overrides=[f"approach={approach}", "seed=0"], env=helicopter, horizon=60)
+
+    monkeypatch.setattr(run_experiment.subprocess, "run", sweep)
+    monkeypatch.setattr(sys, "argv", ["run_experiment.py", "aircraft", "--quick", f"sweep.root={root}"])
+    run_experiment.main()
+    assert stages == ["experiment=aircraft_quick_source", "experiment=aircraft_quick"]
+    record = ExperimentRecord.read(root)
+    assert record.name == "aircraft" and len(record.commands) == 2
+    assert record.reference is not None and record.reference.name == "autopilot"
+    assert record.reference.total == pytest.approx(autopilot_return({"horizon": 60}))
+    assert record.reference.total != pytest.approx(autopilot_return())  # the runs' 60-step episodes, not 200
+    tables = json.loads((root / "report" / "tables.json").read_text())
+    assert tables["reference"] == {"name": "autopilot", "return": record.reference.total}
+    assert "reference" in yaml.safe_load((root / "experiment.yaml").read_text())

@@ -2,10 +2,16 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
+
+
+def _column_names(input_dim: int) -> list[str]:
+    """``lengthscale/in{i}`` for each of the D inputs, then ``signal_variance``, ``noise_variance``."""
+    return [f"lengthscale/in{i}" for i in range(input_dim)] + ["signal_variance", "noise_variance"]
 
 
 @dataclass(frozen=True)
@@ -81,19 +87,31 @@ class GPHyperparameters:
 
     def names(self) -> list[str]:
         """Column names of the flat forms: ``lengthscale/in{i}``, ``signal_variance``, ``noise_variance``."""
-        return [f"lengthscale/in{i}" for i in range(self.input_dim)] + [
-            "signal_variance",
-            "noise_variance",
-        ]
+        return _column_names(self.input_dim)
+
+    @staticmethod
+    def keys(num_outputs: int, input_dim: int) -> list[str]:
+        """The keys of :meth:`as_dict`, ``out{j}/<name>``, output-major in the column order of :meth:`natural`."""
+        return [f"out{j}/{name}" for j in range(num_outputs) for name in _column_names(input_dim)]
 
     def as_dict(self) -> dict[str, float]:
         """Flat ``{"out{j}/<name>": value}`` mapping, for logs and CSV files."""
-        values = self.natural().detach().cpu()
-        return {
-            f"out{j}/{name}": float(values[j, i])
-            for j in range(self.num_outputs)
-            for i, name in enumerate(self.names())
-        }
+        values = self.natural().detach().cpu().reshape(-1)
+        return {key: float(v) for key, v in zip(self.keys(self.num_outputs, self.input_dim), values, strict=True)}
+
+    @classmethod
+    def from_dict(cls, values: Mapping[str, float | str], prefix: str = "") -> GPHyperparameters:
+        """θ in float64 from the keys of :meth:`as_dict` behind ``prefix`` (its inverse); other keys are ignored.
+
+        E.g. ``from_dict(metrics_row, "theta/")`` reads a ``metrics.csv`` row's θ_i columns.
+        """
+        flat = {key.removeprefix(prefix): value for key, value in values.items() if key.startswith(prefix)}
+        num_outputs = sum(key.endswith("/signal_variance") for key in flat)
+        if num_outputs == 0 or len(flat) % num_outputs:
+            raise ValueError(f"not a flat θ behind {prefix!r}: {sorted(flat)}")
+        keys = cls.keys(num_outputs, len(flat) // num_outputs - 2)
+        natural = torch.tensor([float(flat[key]) for key in keys], dtype=torch.float64)
+        return cls.from_natural(natural.reshape(num_outputs, -1))
 
     def state_dict(self) -> dict[str, Tensor]:
         """The three tensors by field name, on the CPU (``GPHyperparameters(**state)`` rebuilds θ), for checkpoints."""

@@ -109,12 +109,4 @@ def _stored_theta(checkpoint: dict) -> GPHyperparameters | None:
     learned = [row for row in checkpoint["metrics"] if row.get("kind") == "policy"]
     if not learned:
         return None
-    row = learned[-1]
-    outputs = sorted({int(k.split("/")[1][3:]) for k in row if k.startswith("theta/out")})
-    inputs = sorted({int(k.rsplit("/in", 1)[1]) for k in row if k.startswith("theta/out0/lengthscale/in")})
-    return GPHyperparameters(
-        lengthscales=torch.tensor([[row[f"theta/out{j}/lengthscale/in{i}"] for i in inputs] for j in outputs],
-                                  dtype=torch.float64),
-        signal_variance=torch.tensor([row[f"theta/out{j}/signal_variance"] for j in outputs], dtype=torch.float64),
-        noise_variance=torch.tensor([row[f"theta/out{j}/noise_variance"] for j in outputs], dtype=torch.float64),
-    )
+    return GPHyperparameters.from_dict(learned[-1], prefix="theta/")  # the θ_i columns (qtl.recorder.THETA_PREFIX)

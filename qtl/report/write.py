@@ -1,0 +1,166 @@
+"""The report of an experiment directory: ``report.md``, ``tables.json`` and the learning-curve figure.
+
+Every number is a mean over seeds ± its standard deviation (ddof = 1), over each cell's common episodes.
+
+    >>> write_report("runs/cartpole")  # doctest: +SKIP
+    PosixPath('runs/cartpole/report/report.md')
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import shlex
+from collections.abc import Sequence
+from pathlib import Path
+
+import pandas as pd
+
+from qtl.report.approaches import approach_name
+from qtl.report.autopilot import flies_helicopter
+from qtl.report.discover import OVERRIDES_FILE, SEED_PREFIX, Experiment, discover, run_overrides
+from qtl.report.figures import FIGURE_STEM, plot_learning_curves
+from qtl.report.record import EXPERIMENT_FILE
+from qtl.report.stats import (
+    CELL_KEYS,
+    METRICS,
+    compliance_table,
+    compliance_values,
+    over_seeds,
+    per_seed,
+    seed_values,
+    std_or_none,
+)
+from qtl.report.tables import REWARD_DIGITS, TITLES, markdown, table_numbers, tables_markdown
+
+logger = logging.getLogger(__name__)
+
+REPORT_DIR = "report"
+REPORT_FILE = "report.md"
+TABLES_FILE = "tables.json"
+TRAIN_COMMAND = "qtl-train"
+RECORD_HINT = ("record it with `python scripts/report.py {root} --record-reference` (or rerun "
+               "`python scripts/run_experiment.py aircraft ...`, which reuses the finished runs)")
+
+JsonStat = dict[str, float | int | dict[str, float] | None]
+
+
+def _stat_json(stats: pd.Series, values: pd.DataFrame) -> JsonStat:
+    """Mean, std (None for one seed), number of seeds and the per-seed values of one table cell."""
+    return {"mean": float(stats["mean"]), "std": std_or_none(stats["std"]), "n": int(stats["n"]),
+            "per_seed": per_seed(values)}
+
+
+def tables_json(experiment: Experiment) -> dict[str, object]:
+    """The numbers of Tables 1-6 and of the runs behind them, for ``tables.json``."""
+    values = seed_values(experiment)
+    metrics: dict[str, dict[str, dict[str, JsonStat]]] = {}
+    for metric in METRICS:
+        of_metric = values[values["metric"] == metric]
+        by_cell = of_metric.groupby(CELL_KEYS, sort=False)
+        table = metrics[metric] = {}
+        for (approach, label), stats in over_seeds(of_metric, CELL_KEYS).iterrows():
+            table.setdefault(approach, {})[label] = _stat_json(stats, by_cell.get_group((approach, label)))
+    compliance = compliance_values(experiment)
+    reference = experiment.reference
+    return {
+        "experiment": experiment.name,
+        "root": str(experiment.root),
+        "approaches": {a: approach_name(a) for a in experiment.approaches},
+        "labels": experiment.labels,
+        "sources": {str(seed): len(curve.returns) for seed, curve in experiment.sources.items()},
+        "cells": {a: {label: {"seeds": cell.seeds, "episodes": cell.episodes, "truncated": cell.truncated,
+                              "run_episodes": {str(s): n for s, n in sorted(cell.lengths.items())}}
+                      for label, cell in by_label.items()}
+                  for a, by_label in experiment.cells.items()},
+        **metrics,
+        "compliance": {label: {"approach": row["approach"], **_stat_json(row, compliance[
+                           (compliance["approach"] == row["approach"]) & (compliance["label"] == label)])}
+                       for label, row in compliance_table(experiment).iterrows()},
+        "tables": {str(n): TITLES[n].format(label=experiment.labels[0]) for n in table_numbers(experiment)},
+        "reference": None if reference is None else reference.to_dict(),
+    }
+
+
+def _command_of(run_dir: Path) -> str:
+    """The ``qtl-train`` command line of a run, from its overrides."""
+    overrides = run_overrides(run_dir)
+    if overrides is None:
+        return f"(no {OVERRIDES_FILE})"
+    return " ".join([TRAIN_COMMAND, *map(shlex.quote, overrides)])
+
+
+def _found_markdown(experiment: Experiment) -> str:
+    """What the report was made from: source runs, approaches, labels, seeds and episodes per cell."""
+    lines = [f"- Root: `{experiment.root}`", f"- Experiment: {experiment.name or f'unnamed (no {EXPERIMENT_FILE})'}"]
+    if experiment.sources:
+        lengths = ", ".join(f"{SEED_PREFIX}{s}: {len(c.returns)}" for s, c in experiment.sources.items())
+        lines.append(f"- Source runs: {len(experiment.sources)} ({lengths} episodes)")
+    else:
+        lines.append("- Source runs: none")
+    lines.append("- Approaches: " + ", ".join(f"{approach_name(a)} (`{a}`)" for a in experiment.approaches))
+    lines.append("- Targets: " + ", ".join(experiment.labels))
+    rows = []
+    for approach, by_label in experiment.cells.items():
+        for label, cell in by_label.items():
+            note = ""
+            if cell.truncated:
+                runs = ", ".join(f"{SEED_PREFIX}{s}: {n}" for s, n in sorted(cell.lengths.items()))
+                note = f"runs differ in length ({runs}): the common first {cell.episodes} episodes are used"
+            rows.append([f"{approach_name(approach)} / {label}", ", ".join(map(str, cell.seeds)), str(cell.episodes),
+                         note])
+    table = pd.DataFrame(rows, columns=["Approach / target", "Seeds", "Episodes", "Note"])
+    return "\n".join(lines) + "\n\n" + markdown(table, text_columns=4)
+
+
+def _commands_markdown(experiment: Experiment) -> str:
+    """The commands of experiment.yaml, else the overrides of one run (the first seed) of every cell."""
+    if experiment.commands:
+        return f"From `{EXPERIMENT_FILE}`:\n\n```bash\n" + "\n".join(experiment.commands) + "\n```"
+    runs = []
+    if experiment.source_dirs:
+        runs.append(next(iter(experiment.source_dirs.values())))
+    runs += [cell.run_dirs[cell.seeds[0]] for by_label in experiment.cells.values() for cell in by_label.values()]
+    lines = [f"- `{run.relative_to(experiment.root)}`: `{_command_of(run)}`" for run in runs]
+    return (f"No `{EXPERIMENT_FILE}`: the overrides of one run per cell (the other seeds differ in `seed=`).\n\n"
+            + "\n".join(lines))
+
+
+def report_markdown(experiment: Experiment, figures: Sequence[Path]) -> str:
+    """``report.md``: what was found, Tables 1-6, the learning-curve figure and the commands that made the runs."""
+    title = experiment.name or experiment.root.name
+    png, *others = figures
+    caption = "Learning curves: mean total reward per episode over seeds, error bars ±1 standard deviation."
+    reference = experiment.reference
+    if reference is not None:
+        caption += f" Dashed: the {reference.name}'s total reward ({reference.total:.{REWARD_DIGITS}f})."
+    sections = [
+        f"# QTL-PILCO report: {title}",
+        "## What was found\n\n" + _found_markdown(experiment),
+        "## Tables\n\n" + "\n\n".join(tables_markdown(experiment)),
+        f"## Learning curves\n\n![learning curves]({png.name})\n\n{caption} "
+        + " ".join(f"[{p.suffix[1:].upper()}]({p.name})" for p in others),
+        "## Commands\n\n" + _commands_markdown(experiment),
+    ]
+    return "\n\n".join(sections) + "\n"
+
+
+def write_report(root: str | Path, out_dir: str | Path | None = None) -> Path:
+    """Write ``report.md``, ``tables.json`` and the learning-curve figure (Tables 1-6, Figs. 1-3); the report's path.
+
+    ``out_dir`` defaults to ``<root>/report``. The autopilot line is read from ``experiment.yaml``, never computed
+    here. Raises ValueError when ``root`` has no target runs.
+    """
+    experiment = discover(root)
+    out = experiment.root / REPORT_DIR if out_dir is None else Path(out_dir).expanduser().resolve()
+    out.mkdir(parents=True, exist_ok=True)
+    if flies_helicopter(experiment) and experiment.reference is None:
+        logger.warning(
+            "%s flies the helicopter but its %s records no autopilot reference: the figure has no autopilot line; %s",
+            experiment.root, EXPERIMENT_FILE, RECORD_HINT.format(root=experiment.root))
+    figures = plot_learning_curves(experiment, out / FIGURE_STEM, experiment.reference)
+    (out / TABLES_FILE).write_text(json.dumps(tables_json(experiment), indent=2, ensure_ascii=False) + "\n")
+    report = out / REPORT_FILE
+    report.write_text(report_markdown(experiment, figures), encoding="utf-8")
+    logger.info("report written to %s", report)
+    return report

@@ -1,0 +1,26 @@
+"""The learning-curve figure: PNG and PDF, one legend for every panel."""
+
+from __future__ import annotations
+
+from matplotlib.figure import Figure
+
+from qtl.report import legend_entries
+
+
+def test_figures_are_written_as_png_and_pdf(cartpole):
+    report, _, _ = cartpole
+    png, pdf = report.parent / "fig_learning_curves.png", report.parent / "fig_learning_curves.pdf"
+    assert png.stat().st_size > 1000 and png.read_bytes().startswith(b"\x89PNG")
+    assert pdf.stat().st_size > 1000 and pdf.read_bytes().startswith(b"%PDF")
+
+
+def test_one_legend_names_the_approaches_of_every_panel():
+    # An approach run on the second target only (the 2.0 kg column of seven beside a 1.5 kg column of
+    # three) must still be named: the legend on the first panel gathers every panel's entries once.
+    first, second = Figure().subplots(1, 2)
+    first.plot([0, 1], label="PILCO")
+    second.plot([0, 1], label="PILCO")
+    second.plot([1, 0], label="Policy transfer")
+    handles, labels = legend_entries([first, second])
+    assert labels == ["PILCO", "Policy transfer"]
+    assert len(handles) == 2

@@ -1,0 +1,111 @@
+"""The run recorder: metrics.csv and timings.csv rows, TensorBoard scalars read back, θ columns both ways."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import matplotlib.pyplot as plt
+import numpy as np
+import pytest
+import torch
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+from qtl.models import GPHyperparameters
+from qtl.recorder import (
+    BASE_COLUMNS,
+    METRICS_FILE,
+    THETA_P_PREFIX,
+    TIMINGS_FILE,
+    RunRecorder,
+    theta_columns,
+    theta_from_row,
+    theta_row,
+    trajectory_figure,
+)
+
+THETA = GPHyperparameters(
+    lengthscales=torch.tensor([[1.5, 0.25, 3.0], [2.0, 0.5, 1.0 / 3.0]], dtype=torch.float64),
+    signal_variance=torch.tensor([0.7, 1.1], dtype=torch.float64),
+    noise_variance=torch.tensor([1e-6, 2e-4], dtype=torch.float64),
+)
+COLUMNS = BASE_COLUMNS + theta_columns(2, 3)
+
+
+def read_csv(path: Path) -> list[dict[str, str]]:
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def episode_row(episode: int, theta: GPHyperparameters | None) -> dict[str, float | int | str]:
+    return {"episode": episode, "kind": "random" if episode == 0 else "policy", "return": 10.0 * episode + 0.5,
+            "success": int(episode == 2), "compliance": "", **theta_row(theta)}
+
+
+def scalars(run_dir: Path) -> dict[str, list[tuple[int, float]]]:
+    """Every scalar tag of the run's event files: (step, value) pairs."""
+    events = EventAccumulator(str(run_dir))
+    events.Reload()
+    return {tag: [(e.step, e.value) for e in events.Scalars(tag)] for tag in events.Tags()["scalars"]}
+
+
+def test_theta_columns_name_every_hyperparameter_and_parse_back():
+    assert theta_columns(2, 3)[:5] == ["theta/out0/lengthscale/in0", "theta/out0/lengthscale/in1",
+                                       "theta/out0/lengthscale/in2", "theta/out0/signal_variance",
+                                       "theta/out0/noise_variance"]
+    assert theta_columns(1, 1, THETA_P_PREFIX) == ["theta_p/out0/lengthscale/in0", "theta_p/out0/signal_variance",
+                                                   "theta_p/out0/noise_variance"]
+    row = theta_row(THETA)
+    assert list(row) == theta_columns(2, 3)  # the same names, in the same order
+    assert theta_from_row(row).natural().equal(THETA.natural())
+    # As read back from metrics.csv: strings in full precision, θ_p beside θ, empty where there is no model.
+    text = {k: repr(v) for k, v in {**row, **theta_row(THETA, THETA_P_PREFIX)}.items()}
+    assert theta_from_row(text, THETA_P_PREFIX).natural().equal(THETA.natural())
+    assert theta_from_row({c: "" for c in theta_columns(2, 3)}) is None
+    assert theta_row(None) == {}
+
+
+def test_recorder_writes_rows_and_scalars_and_a_resume_keeps_exactly_the_earlier_rows(tmp_path):
+    recorder = RunRecorder(tmp_path, COLUMNS)
+    try:
+        for episode, theta in ((0, None), (1, THETA), (2, THETA)):
+            recorder.record(episode_row(episode, theta), {"model_fit_s": 0.5, "policy_search_s": 1.5 + episode})
+    finally:
+        recorder.close()
+    rows = read_csv(tmp_path / METRICS_FILE)
+    assert list(rows[0]) == COLUMNS
+    assert [r["return"] for r in rows] == ["0.5", "10.5", "20.5"]
+    assert rows[0]["theta/out1/noise_variance"] == "" and float(rows[1]["theta/out1/noise_variance"]) == 2e-4
+    assert theta_from_row(rows[2]).natural().equal(THETA.natural())  # metrics.csv keeps θ exactly
+    assert [r["policy_search_s"] for r in read_csv(tmp_path / TIMINGS_FILE)] == ["1.5", "2.5", "3.5"]
+    logged = scalars(tmp_path)
+    assert logged["eval/return"] == [(0, 0.5), (1, 10.5), (2, 20.5)]
+    assert logged["eval/success"] == [(0, 0.0), (1, 0.0), (2, 1.0)]
+    assert logged["time/policy_search_s"] == [(0, 1.5), (1, 2.5), (2, 3.5)]
+    assert logged["theta/out0/lengthscale/in1"] == [(1, 0.25), (2, 0.25)]  # none for the model-less episode
+    assert "transfer/compliance" not in logged  # empty values are not logged
+
+    resumed = RunRecorder(tmp_path, COLUMNS, rows=[episode_row(0, None), episode_row(1, THETA)],
+                          timings=read_csv(tmp_path / TIMINGS_FILE)[:2])
+    try:
+        resumed.record(episode_row(2, THETA), {"model_fit_s": 0.5, "policy_search_s": 9.0})
+    finally:
+        resumed.close()
+    assert [r["return"] for r in read_csv(tmp_path / METRICS_FILE)] == ["0.5", "10.5", "20.5"]
+    assert [r["policy_search_s"] for r in read_csv(tmp_path / TIMINGS_FILE)] == ["1.5", "2.5", "9.0"]
+    assert scalars(tmp_path)["time/policy_search_s"][-1] == (2, 9.0)  # the interrupted writer's step 2 purged
+
+
+def test_trajectory_figure_labels_panels_with_state_names():
+    steps = np.linspace(0.0, 1.0, 6)
+    mean = np.stack([steps, -steps], axis=1)
+    std, real = 0.1 * np.ones_like(mean), mean[:4] + 0.05
+    fig = trajectory_figure(mean, std, real, "episode 3")
+    assert [ax.get_ylabel() for ax in fig.axes] == ["x[0]", "x[1]"]
+    named = trajectory_figure(mean, std, real, "episode 3", state_names=["cart position", "cart velocity"])
+    assert [ax.get_ylabel() for ax in named.axes] == ["cart position", "cart velocity"]
+    assert named.axes[0].get_title() == "episode 3"
+    with pytest.raises(ValueError, match="1 state names for 2 state dimensions"):
+        trajectory_figure(mean, std, real, "episode 3", state_names=["x"])
+    plt.close(fig)
+    plt.close(named)
