@@ -158,6 +158,11 @@ class AircraftEnv(gymnasium.Env, ABC):
     start distribution, reward, truncation, observation noise and rendering.
     """
 
+    # The observation's dimensions, for axis labels and tables.
+    state_names: ClassVar[tuple[str, ...]] = (
+        "x (m)", "y (m)", "z (m)", "φ (rad)", "θ (rad)", "ψ (rad)",
+        "ẋ (m/s)", "ẏ (m/s)", "ż (m/s)", "φ̇ (rad/s)", "θ̇ (rad/s)", "ψ̇ (rad/s)",
+    )
     metadata: ClassVar[dict[str, Any]] = {
         "render_modes": ["rgb_array"],
         "render_fps": round(1.0 / DEFAULT_DT),

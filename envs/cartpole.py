@@ -136,6 +136,8 @@ class CartPoleSwingUpEnv(gymnasium.Env):
     ```
     """
 
+    # The observation's dimensions, for axis labels and tables.
+    state_names: ClassVar[tuple[str, ...]] = ("x (m)", "ẋ (m/s)", "θ (rad)", "θ̇ (rad/s)")
     metadata: ClassVar[dict[str, Any]] = {
         "render_modes": ["rgb_array"],
         "render_fps": round(1.0 / DEFAULT_DT),

@@ -148,6 +148,8 @@ class MountainCarEnv(gymnasium.Env):
     ```
     """
 
+    # The observation's dimensions, for axis labels and tables.
+    state_names: ClassVar[tuple[str, ...]] = ("x", "v")
     metadata: ClassVar[dict[str, Any]] = {"render_modes": ["rgb_array"], "render_fps": 10}
 
     def __init__(

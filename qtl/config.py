@@ -1,111 +1,495 @@
-"""Dataclass schema of the Hydra configuration: a typo or a wrong type fails at compose time."""
+"""Dataclass schema of the Hydra configuration: a typo or a wrong type fails at compose time.
+
+Every key carries its description (``metadata["help"]``); ``qtl-train --help`` lists them.
+Each option of the ``propagation``, ``policy``, ``optimizer`` and ``rule`` groups has its own
+schema (``<group>/<option>_schema`` in the ConfigStore, named first in the option's defaults list).
+"""
 
 from __future__ import annotations
 
+import dataclasses
+import os
+import sys
+import typing
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Any, Optional
 
 from hydra.core.config_store import ConfigStore
-from omegaconf import MISSING
+from omegaconf import II, MISSING, DictConfig, OmegaConf
+
+from qtl.errors import UserError
+from qtl.models.fitting import DEFAULT_INDUCING, DEFAULT_MAX_ITER, DEFAULT_RESTARTS, DEFAULT_SPARSE_ABOVE
 
 # OmegaConf reads these annotations at run time: keep `Optional[...]` and `List`-style types
 # that it understands (PEP 604 unions are not supported by OmegaConf's structured configs).
+
+RUN_DIR_RESOLVER = "qtl.run_dir"
+HELP_WIDTH = 44  # column of the descriptions in --help
+PERTURBATION_HELP = "std of the restarts' perturbation, relative to each parameter's spread"
+SPACE_HELP = "log | natural: the space θ is handled in"
+INDUCING_HELP = "inducing inputs of the sparse GP (PILCO's FITC uses ~300)"
+
+
+def doc(text: str) -> dict[str, str]:
+    """A schema field's metadata: its one-line description, shown by ``qtl-train --help``."""
+    return {"help": text}
+
+
+# -- task --------------------------------------------------------------------------------------
 
 
 @dataclass
 class StartConfig:
     """Start distribution N(mean, diag(std²)); null reads the env's ``start_mean``/``start_std``."""
 
-    mean: Optional[list[float]] = None  # noqa: UP045
-    std: Optional[list[float]] = None  # noqa: UP045
+    mean: Optional[list[float]] = field(  # noqa: UP045
+        default=None, metadata=doc("start mean `D` (null: the env's start_mean)"),
+    )
+    std: Optional[list[float]] = field(  # noqa: UP045
+        default=None, metadata=doc("start std `D` (null: the env's start_std)"),
+    )
 
 
 @dataclass
 class RewardConfig:
     """Saturating reward (Eq. 13) for an env that does not expose ``reward_spec`` itself."""
 
-    angle_dims: list[int] = field(default_factory=list)
-    target: list[float] = MISSING
-    weight: list[list[float]] = MISSING
-    width: float = MISSING
+    angle_dims: list[int] = field(default_factory=list, metadata=doc("state dimensions the reward sees as (sin, cos)"))
+    target: list[float] = field(default=MISSING, metadata=doc("target y* in the augmented state"))
+    weight: list[list[float]] = field(default=MISSING, metadata=doc("weight matrix W of (y-y*)"))
+    width: float = field(default=MISSING, metadata=doc("width of the saturating reward"))
 
 
 @dataclass
 class SuccessConfig:
     """Success: the reward-space distance stays within ``threshold`` for the last ``last_steps``."""
 
-    threshold: float = MISSING
-    last_steps: int = MISSING
+    threshold: float = field(default=MISSING, metadata=doc("distance to the target that counts as success"))
+    last_steps: int = field(
+        default=MISSING, metadata=doc("steps at the end of an episode that must all succeed (<= task.horizon)"),
+    )
 
 
 @dataclass
 class TaskConfig:
     """A task: the gymnasium env (``env.id`` plus constructor kwargs) and what the learner needs."""
 
-    name: str = MISSING
-    family: Optional[str] = None  # noqa: UP045  (transfer stays within a family; null: the env id)
-    env: dict[str, Any] = MISSING
-    horizon: int = MISSING
-    angle_dims: list[int] = field(default_factory=list)
-    start: StartConfig = field(default_factory=StartConfig)
-    reward: Optional[RewardConfig] = None  # noqa: UP045
-    policy_size: int = 50
-    success: SuccessConfig = field(default_factory=SuccessConfig)
+    name: str = field(default=MISSING, metadata=doc("the task's name"))
+    family: Optional[str] = field(  # noqa: UP045
+        default=None, metadata=doc("transfer stays within a family (null: the env id)"),
+    )
+    env: dict[str, Any] = field(
+        default=MISSING, metadata=doc("env id and the constructor kwargs the task changes (+task.env.<kwarg>=)"),
+    )
+    horizon: int = field(
+        default=MISSING, metadata=doc("steps per episode and prediction horizon (the env's horizon kwarg)"),
+    )
+    angle_dims: list[int] = field(
+        default_factory=list, metadata=doc("state dimensions that are angles: (sin, cos) for GP and policy"),
+    )
+    state_names: Optional[list[str]] = field(  # noqa: UP045
+        default=None, metadata=doc("names of the state dimensions (null: the env's)"),
+    )
+    start: StartConfig = field(
+        default_factory=StartConfig, metadata=doc("start distribution x_0 ~ N(mean, diag(std²))"),
+    )
+    reward: Optional[RewardConfig] = field(  # noqa: UP045
+        default=None, metadata=doc("saturating reward (null: the env's reward_spec)"),
+    )
+    policy_size: int = field(default=50, metadata=doc("RBF basis functions of the policy"))
+    success: SuccessConfig = field(default_factory=SuccessConfig, metadata=doc("when an episode counts as a success"))
+
+
+# -- groups: one schema per option, typed by the group's base ------------------------------------
+
+
+@dataclass
+class PropagationConfig:
+    """Base of the ``propagation`` options: a partial propagator, completed with model, policy and reward."""
+
+    _target_: str = MISSING
+    _partial_: bool = True
+
+
+@dataclass
+class MomentMatchingConfig(PropagationConfig):
+    """Analytic moment matching through policy and GP (PILCO; Eq. 1-5)."""
+
+    _target_: str = "qtl.propagation.MomentMatching"
+    include_noise: bool = field(default=False, metadata=doc("add the GP's noise variance to every predicted state"))
+
+
+@dataclass
+class ParticlesConfig(PropagationConfig):
+    """P reparameterised samples through policy and GP (MC-PILCO / PIPPS; Eq. 4), common random numbers."""
+
+    _target_: str = "qtl.propagation.Particles"
+    include_noise: bool = field(default=True, metadata=doc("add the GP's noise variance to every predicted state"))
+    num_particles: int = field(default=400, metadata=doc("particles P"))
+    resample_every: int = field(
+        default=0, metadata=doc("fresh base noise every k evaluations (0: fixed per search; pair k > 0 with Adam)"),
+    )
+    expected_reward: bool = field(
+        default=True, metadata=doc("score E[r(x_t) | x_{t-1}] per particle (false: r of the drawn state)"),
+    )
+    gaussian_resampling: bool = field(
+        default=False, metadata=doc("redraw the particles from their fitted Gaussian every step (PIPPS)"),
+    )
+    seed: int = field(default=II("seed"), metadata=doc("seed of the base noise"))
+
+
+@dataclass
+class PolicyConfig:
+    """Base of the ``policy`` options: a partial factory, completed with the dimensions and start features."""
+
+    _target_: str = MISSING
+    _partial_: bool = True
+
+
+@dataclass
+class RBFPolicyConfig(PolicyConfig):
+    """RBF network (Eq. 5), support points drawn around the start distribution, squashed to the action bounds."""
+
+    _target_: str = "qtl.policies.rbf_policy"
+    num_basis: int = field(default=II("task.policy_size"), metadata=doc("basis functions (default task.policy_size)"))
+
+
+@dataclass
+class LinearPolicyConfig(PolicyConfig):
+    """Linear policy u = W y + b, squashed to the action bounds."""
+
+    _target_: str = "qtl.policies.linear_policy"
+
+
+@dataclass
+class OptimizerConfig:
+    """Base of the ``optimizer`` options: a policy search with restarts, the best ψ kept."""
+
+    _target_: str = MISSING
+
+
+@dataclass
+class LBFGSConfig(OptimizerConfig):
+    """Policy search by L-BFGS."""
+
+    _target_: str = "qtl.policy_search.LBFGSSearch"
+    max_iter: int = field(default=100, metadata=doc("function evaluations per run"))
+    restarts: int = field(default=2, metadata=doc("runs in all, the first from the current ψ"))
+    perturbation: float = field(default=0.1, metadata=doc(PERTURBATION_HELP))
+
+
+@dataclass
+class AdamConfig(OptimizerConfig):
+    """Policy search by Adam (for stochastic objectives such as particle rollouts)."""
+
+    _target_: str = "qtl.policy_search.AdamSearch"
+    steps: int = field(default=300, metadata=doc("Adam steps per run"))
+    lr: float = field(default=0.01, metadata=doc("learning rate"))
+    restarts: int = field(default=1, metadata=doc("runs in all, the first from the current ψ"))
+    perturbation: float = field(default=0.1, metadata=doc(PERTURBATION_HELP))
+
+
+@dataclass
+class RuleConfig:
+    """Base of the ``rule`` options: how θ_i follows θ_p_i (qtl/transfer/rules.py)."""
+
+    _target_: str = MISSING
+
+
+@dataclass
+class NoTransferConfig(RuleConfig):
+    """PILCO: θ_i = θ_p_i, evidence maximisation each episode; θ_s is not used."""
+
+    _target_: str = "qtl.transfer.NoTransfer"
+    space: str = field(default="log", metadata=doc(SPACE_HELP))
+
+
+@dataclass
+class FreeConfig(RuleConfig):
+    """Hyper-parameters transfer: θ_s for the first model, then θ_p re-learned freely (from θ_s)."""
+
+    _target_: str = "qtl.transfer.Free"
+    space: str = field(default="log", metadata=doc(SPACE_HELP))
+
+
+@dataclass
+class ForgettingConfig(RuleConfig):
+    """Forgetting factor: θ_0 = θ_s, θ_i = γ θ_{i−1} + (1 − γ) θ_p_i (Eq. 6-7)."""
+
+    _target_: str = "qtl.transfer.Forgetting"
+    space: str = field(default="log", metadata=doc(SPACE_HELP))
+    gamma: float = field(default=0.9, metadata=doc("γ in [0, 1]: 0 is PILCO, 1 keeps θ_s"))
+
+
+@dataclass
+class BayesianConfig(RuleConfig):
+    """Bayesian updating (Eq. 8-12): per hyper-parameter, N(θ_s, σ_0²) fused with each θ_p ~ N(θ, c / n)."""
+
+    _target_: str = "qtl.transfer.Bayesian"
+    space: str = field(default="log", metadata=doc(SPACE_HELP))
+    source_variance: float = field(default=1.0, metadata=doc("σ_0²: the prior variance of θ_s"))
+    evidence_variance: float = field(default=100.0, metadata=doc("c in σ_p² = c / n (Eq. 12)"))
 
 
 @dataclass
 class ModelConfig:
-    """Evidence maximisation of the dynamics GP."""
+    """Base of the ``model`` options: which dynamics GP the loop fits (qtl/models/fitting.py), and its fit."""
 
-    restarts: int = 3
-    max_iter: int = 100
-    sparse_above: Optional[int] = 1000  # noqa: UP045  (more tuples than this: the sparse GP; null: never)
-    inducing: int = 300
+    _target_: str = MISSING
+    restarts: int = field(
+        default=DEFAULT_RESTARTS, metadata=doc("evidence maximisation: L-BFGS runs, the best kept per output"),
+    )
+    max_iter: int = field(default=DEFAULT_MAX_ITER, metadata=doc("L-BFGS iterations per run"))
+
+
+@dataclass
+class ExactModelConfig(ModelConfig):
+    """The exact GP at every data size."""
+
+    _target_: str = "qtl.models.ExactFit"
+
+
+@dataclass
+class SparseModelConfig(ModelConfig):
+    """The sparse GP (SGPR, inducing inputs learned with θ) at every data size."""
+
+    _target_: str = "qtl.models.SparseFit"
+    inducing: int = field(default=DEFAULT_INDUCING, metadata=doc(INDUCING_HELP))
+
+
+@dataclass
+class AutoModelConfig(ModelConfig):
+    """The exact GP up to ``sparse_above`` tuples, the sparse GP above (the default)."""
+
+    _target_: str = "qtl.models.AutoFit"
+    sparse_above: Optional[int] = field(  # noqa: UP045
+        default=DEFAULT_SPARSE_ABOVE, metadata=doc("more tuples than this: the sparse GP (null: always exact)"),
+    )
+    inducing: int = field(default=DEFAULT_INDUCING, metadata=doc(INDUCING_HELP))
+
+
+# The group options and their schemas: `configs/<group>/<option>.yaml` names `<option>_schema` first.
+GROUP_SCHEMAS: dict[str, dict[str, type]] = {
+    "propagation": {"moment_matching": MomentMatchingConfig, "particles": ParticlesConfig},
+    "policy": {"rbf": RBFPolicyConfig, "linear": LinearPolicyConfig},
+    "optimizer": {"lbfgs": LBFGSConfig, "adam": AdamConfig},
+    "rule": {"none": NoTransferConfig, "free": FreeConfig, "forgetting": ForgettingConfig, "bayesian": BayesianConfig},
+    "model": {"auto": AutoModelConfig, "exact": ExactModelConfig, "sparse": SparseModelConfig},
+}
+# A group node stored before its group existed (no `_target_`) is read as this option: `model` (restarts,
+# max_iter, sparse_above, inducing) was today's `model=auto`.
+LEGACY_TARGETS = {"model": AutoModelConfig._target_}
+
+
+SCHEMA_BY_TARGET: dict[str, type] = {
+    schema._target_: schema for options in GROUP_SCHEMAS.values() for schema in options.values()  # type: ignore[attr-defined]
+}
+
+
+def typed_groups(cfg: DictConfig) -> DictConfig:
+    """``cfg`` with each group node merged onto the schema of its option (by ``_target_``): defaults filled, checked.
+
+    A stored run config (a checkpoint's) then compares and merges like a freshly composed one.
+    """
+    if cfg.get("rule") is None:  # runs made before transfer existed are PILCO runs
+        cfg.rule = OmegaConf.structured(NoTransferConfig)
+    for group in GROUP_SCHEMAS:
+        node = cfg.get(group)
+        schema = None if node is None else SCHEMA_BY_TARGET.get(node.get("_target_", LEGACY_TARGETS.get(group)))
+        if schema is not None:
+            cfg[group] = OmegaConf.merge(OmegaConf.structured(schema), node)
+    return cfg
+
+
+def check_group_keys(cfg: DictConfig) -> None:
+    """Every key of a group node is a key of its option's schema (``+group.key=...`` gets past Hydra's check)."""
+    for group in GROUP_SCHEMAS:
+        node = cfg.get(group)
+        schema = None if node is None else SCHEMA_BY_TARGET.get(node.get("_target_"))
+        if schema is None:
+            continue
+        known = {f.name for f in dataclasses.fields(schema)}
+        unknown = sorted(set(node) - known)
+        if unknown:
+            raise UserError(
+                f"{group}.{unknown[0]} is no key of {group} {node._target_}: its keys are "
+                f"{sorted(k for k in known if not k.startswith('_'))}"
+            )
+
+
+# -- the rest ------------------------------------------------------------------------------------
 
 
 @dataclass
 class TransferConfig:
     """Transfer from a source run (Algorithm 1): what is transferred and the compliance gate."""
 
-    source: Optional[str] = None  # noqa: UP045
-    hyperparameters: bool = True
-    policy: bool = False
-    min_compliance: Optional[float] = None  # noqa: UP045
-    compliance_temperature: Optional[float] = None  # noqa: UP045
-    compliance_resolution: float = 0.0
+    source: Optional[str] = field(  # noqa: UP045
+        default=None, metadata=doc("a finished run directory of the source task"),
+    )
+    hyperparameters: bool = field(
+        default=True, metadata=doc("θ_0 = θ_s, then the rule (rule=free|forgetting|bayesian)"),
+    )
+    policy: bool = field(default=False, metadata=doc("ψ_0 = ψ_s: the source's final policy is the initial policy"))
+    min_compliance: Optional[float] = field(  # noqa: UP045
+        default=None, metadata=doc("below this task compliance (Eq. 14), fall back to PILCO"),
+    )
+    compliance_temperature: Optional[float] = field(  # noqa: UP045
+        default=None, metadata=doc("κ of Eq. 14 (null: the state dimension)"),
+    )
+    compliance_resolution: float = field(
+        default=0.0, metadata=doc("ρ: compare at ρ × each output's spread of Δ (0: exact)"),
+    )
 
 
 @dataclass
 class SweepConfig:
     """Where an experiment preset (``configs/experiment/``) puts its source and target runs."""
 
-    name: Optional[str] = None  # noqa: UP045
-    root: str = "runs/experiments"
+    name: Optional[str] = field(default=None, metadata=doc("the experiment's name"))  # noqa: UP045
+    root: str = field(default="runs/experiments", metadata=doc("directory of the experiment's runs"))
 
 
 @dataclass
 class TrainConfig:
     """Top level of ``qtl-train``."""
 
-    task: TaskConfig = MISSING
-    propagation: Any = MISSING
-    policy: Any = MISSING
-    optimizer: Any = MISSING
-    rule: Any = field(default_factory=lambda: {"_target_": "qtl.transfer.NoTransfer"})
-    seed: int = 0
-    random_episodes: int = 1
-    episodes: int = 9
-    device: str = "cpu"
-    threads: Optional[int] = None  # noqa: UP045
-    dtype: str = "float64"
-    resume: Optional[str] = None  # noqa: UP045
-    progress: bool = True
-    figure_every: int = 3
-    model: ModelConfig = field(default_factory=ModelConfig)
-    transfer: TransferConfig = field(default_factory=TransferConfig)
-    sweep: SweepConfig = field(default_factory=SweepConfig)
+    task: TaskConfig = field(default=MISSING, metadata=doc("the task (group task=...)"))
+    propagation: PropagationConfig = field(
+        default=MISSING, metadata=doc("long-term prediction (group propagation=...)"),
+    )
+    policy: PolicyConfig = field(default=MISSING, metadata=doc("the policy π_ψ (group policy=...)"))
+    optimizer: OptimizerConfig = field(default=MISSING, metadata=doc("policy search (group optimizer=...)"))
+    rule: RuleConfig = field(default=MISSING, metadata=doc("how θ_i follows θ_p_i (group rule=...)"))
+    seed: int = field(default=0, metadata=doc("seed of every random stream"))
+    random_episodes: int = field(default=1, metadata=doc("initial episodes (random actions, or π(ψ_s)); >= 1"))
+    episodes: int = field(default=9, metadata=doc("learned episodes after them; >= 0"))
+    device: str = field(default="cpu", metadata=doc("cpu | cuda | cuda:N"))
+    threads: Optional[int] = field(  # noqa: UP045
+        default=None, metadata=doc("torch intra-op threads (null: torch's default; 1 in multirun)"),
+    )
+    dtype: str = field(default="float64", metadata=doc("float64 | float32"))
+    resume: Optional[str] = field(  # noqa: UP045
+        default=None, metadata=doc("a run directory to continue; auto: this run's own, if any"),
+    )
+    progress: Optional[bool] = field(  # noqa: UP045
+        default=None, metadata=doc("progress bars (null: on when stderr is a terminal)"),
+    )
+    figure_every: int = field(
+        default=3, metadata=doc("predicted-vs-real figure every this many learned episodes (0: never)"),
+    )
+    model: ModelConfig = field(default=MISSING, metadata=doc("the dynamics GP and its fit (group model=...)"))
+    transfer: TransferConfig = field(
+        default_factory=TransferConfig, metadata=doc("transfer from a source run (Section 4)"),
+    )
+    sweep: SweepConfig = field(default_factory=SweepConfig, metadata=doc("where an experiment preset puts its runs"))
+
+
+# -- checks Hydra cannot make ------------------------------------------------------------------------
+
+
+def check_budget(cfg: DictConfig) -> None:
+    """Episode counts a run can learn from; a one-line :class:`UserError` otherwise."""
+    if cfg.random_episodes < 1:
+        raise UserError(
+            f"random_episodes={cfg.random_episodes}: the first model needs data, so random_episodes must be >= 1 "
+            "(the initial episodes apply random actions, or π(ψ_s) with transfer.policy=true)"
+        )
+    if cfg.episodes < 0:
+        raise UserError(f"episodes={cfg.episodes}: the learned episodes after the initial ones must be >= 0")
+
+
+def show_progress(setting: bool | None) -> bool:
+    """``progress``: as set, or (null) on exactly when stderr is a terminal."""
+    return sys.stderr.isatty() if setting is None else bool(setting)
+
+
+def run_dir(resume: str | None, default: str) -> str:
+    """Hydra's run directory: the run being resumed (logs append to its own), else ``default``.
+
+    A ``resume`` directory that does not exist is refused here, before Hydra creates it.
+    """
+    if resume is None or resume == "auto":
+        return default
+    path = os.path.abspath(os.path.expanduser(resume))
+    if not os.path.isdir(path):
+        raise UserError(f"resume={resume!r} does not exist: give the directory of an interrupted run")
+    return path
+
+
+# -- --help --------------------------------------------------------------------------------------------
+
+
+def _dataclass_of(hint: object) -> type | None:
+    """The dataclass a field's type names, ``Optional[...]`` unwrapped; None for a leaf."""
+    for candidate in (hint, *typing.get_args(hint)):
+        if isinstance(candidate, type) and dataclasses.is_dataclass(candidate):
+            return candidate
+    return None
+
+
+def _keys(schema: type, prefix: str = "") -> Iterator[tuple[str, str, str]]:
+    """(dotted key, default, description) of every leaf of ``schema``, nested dataclasses expanded."""
+    hints = typing.get_type_hints(schema)
+    for f in dataclasses.fields(schema):
+        if f.name.startswith("_") or (not prefix and f.name in GROUP_SCHEMAS):
+            continue  # `_target_` and friends; the groups are listed per option
+        key = f"{prefix}{f.name}"
+        nested = _dataclass_of(hints[f.name])
+        if nested is not None:
+            yield from _keys(nested, f"{key}.")
+            continue
+        default = f.default_factory() if f.default_factory is not dataclasses.MISSING else f.default
+        shown = OmegaConf.to_yaml({"v": default}).strip().removeprefix("v:").strip()
+        yield key, shown, f.metadata.get("help", "")
+
+
+def _entry(key: str, default: str, text: str, indent: str) -> str:
+    """One aligned line of the key list (two when the key is long)."""
+    head = f"{indent}{key} [{default}]"
+    return f"{head:<{HELP_WIDTH}} {text}" if len(head) < HELP_WIDTH else f"{head}\n{'':<{HELP_WIDTH}} {text}"
+
+
+def help_text() -> str:
+    """The key list of ``qtl-train --help``: every key with its default and description, then each group's options."""
+    lines = ["== Keys (key=value; defaults in brackets) =="]
+    lines += [_entry(key, default, text, "  ") for key, default, text in _keys(TrainConfig)]
+    for group, options in GROUP_SCHEMAS.items():
+        lines += ["", f"== {group}=<option> =="]
+        for option, schema in options.items():
+            lines.append(f"  {group}={option}: {(schema.__doc__ or '').strip()}")
+            lines += [_entry(key, default, text, "    ") for key, default, text in _keys(schema, f"{group}.")]
+    return "\n".join(lines)
+
+
+HELP_TEMPLATE = """\
+qtl-train: learn a task with PILCO, from scratch or with qualitative transfer from a source run.
+
+  qtl-train [group=option ...] [key=value ...]      e.g. qtl-train task=mountaincar task.env.power=0.5 seed=3
+  qtl-train resume=<run dir> [episodes=N]           continue an interrupted run
+  qtl-train --cfg job [overrides]                   print the composed config
+
+== Config groups (group=option) ==
+$APP_CONFIG_GROUPS
+
+{keys}
+
+Bad input fails before any work with one line saying what to fix (HYDRA_FULL_ERROR=1: the traceback).
+Hydra's own flags: --hydra-help
+"""
 
 
 def register_configs() -> None:
-    """Register the schema with Hydra's ConfigStore (``defaults: [train_schema, ...]``)."""
-    ConfigStore.instance().store(name="train_schema", node=TrainConfig)
+    """Register the schema, each group option's schema, the run-directory resolver and the ``--help`` text."""
+    store = ConfigStore.instance()
+    store.store(name="train_schema", node=TrainConfig)
+    for group, options in GROUP_SCHEMAS.items():
+        for option, schema in options.items():
+            store.store(group=group, name=f"{option}_schema", node=schema)
+    # `$` would be read as Hydra's template placeholders and `${` as OmegaConf interpolations.
+    keys = help_text().replace("$", "$$").replace("${", "\\${")
+    store.store(group="hydra/help", name="qtl",
+                node={"app_name": "qtl-train", "template": HELP_TEMPLATE.format(keys=keys)})
+    if not OmegaConf.has_resolver(RUN_DIR_RESOLVER):
+        OmegaConf.register_new_resolver(RUN_DIR_RESOLVER, run_dir)

@@ -40,9 +40,8 @@ def ensure_run(overrides: list[str], run_dir: Path, episodes: int, *, threads: i
         return 0.0
     if checkpoints:
         extend = [o for o in overrides if o.startswith("episodes=")]
-        # Hydra's own record of the resuming call goes inside the run, not into the current directory.
-        record = run_dir / "resumes" / time.strftime("%Y%m%d-%H%M%S")
-        args = [f"resume={run_dir}", *extend, "progress=false", f"threads={threads}", f"hydra.run.dir={record}"]
+        # A resumed run logs into its own directory (qtl-train's default for resume=).
+        args = [f"resume={run_dir}", *extend, "progress=false", f"threads={threads}"]
     else:
         args = [*overrides, "progress=false", f"threads={threads}", f"hydra.run.dir={run_dir}"]
     start = time.perf_counter()

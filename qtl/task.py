@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import inspect
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -9,6 +10,7 @@ from typing import Any
 import gymnasium
 import numpy as np
 import torch
+from gymnasium.envs.registration import load_env_creator
 
 import envs  # noqa: F401  (registers the qtl/ environment ids)
 from envs.rewards import SaturatingReward, augment_angles
@@ -23,10 +25,11 @@ class Task:
     name: str
     family: str  # tasks of one family share state, action and GP input spaces: transfer stays within one
     env_id: str
-    env_kwargs: dict[str, Any]
+    env_kwargs: dict[str, Any]  # what `gymnasium.make` gets besides the id: the horizon included
     horizon: int
     angle_dims: tuple[int, ...]
     state_dim: int
+    state_names: tuple[str, ...]  # `D`: the env's ``state_names``, ``task.state_names``, or x[0], x[1], ...
     action_dim: int
     action_bound: np.ndarray  # `F`: the action space is [−bound, bound]
     start_mean: np.ndarray  # `D`
@@ -46,6 +49,13 @@ class Task:
         horizon = int(cfg["horizon"])
         if horizon <= 0:
             raise TaskError(f"task.horizon must be a positive number of steps, got {horizon}")
+        success = cfg["success"]
+        if int(success["last_steps"]) > horizon:
+            raise TaskError(
+                f"task.success.last_steps={success['last_steps']} is longer than task.horizon={horizon}: "
+                f"set task.success.last_steps to at most {horizon}"
+            )
+        env_cfg = _with_horizon(env_id, env_cfg, horizon)
         try:
             env = gymnasium.make(env_id, **env_cfg)
         except gymnasium.error.Error as err:
@@ -66,9 +76,9 @@ class Task:
                 raise TaskError(f"task.angle_dims {list(angle_dims)} must be distinct indices below {state_dim}")
             start_mean, start_std = _start_distribution(cfg.get("start"), env.unwrapped, env_id, state_dim)
             reward = _reward(cfg.get("reward"), env.unwrapped, env_id, state_dim)
+            state_names = _state_names(cfg.get("state_names"), env.unwrapped, state_dim)
         finally:
             env.close()
-        success = cfg["success"]
         if float(success["threshold"]) <= 0 or not 1 <= int(success["last_steps"]) <= horizon:
             raise TaskError(
                 f"task.success needs threshold > 0 and 1 <= last_steps <= horizon ({horizon}), got {dict(success)}"
@@ -81,6 +91,7 @@ class Task:
             horizon=horizon,
             angle_dims=angle_dims,
             state_dim=state_dim,
+            state_names=state_names,
             action_dim=action_dim,
             action_bound=high,
             start_mean=start_mean,
@@ -120,6 +131,62 @@ class Task:
     def succeeded(self, states: np.ndarray) -> bool:
         """Whether the last ``success_steps`` states of an episode `T+1 x D` are within the threshold."""
         return bool((self.distance(states[-self.success_steps :]) <= self.success_threshold).all())
+
+
+def constructor_parameters(env_id: str) -> dict[str, inspect.Parameter] | None:
+    """The named parameters of ``env_id``'s constructor; None when it takes ``**kwargs`` (any name may be valid)."""
+    try:
+        entry_point = gymnasium.spec(env_id).entry_point
+    except gymnasium.error.Error as err:
+        raise TaskError(f"cannot make task.env.id={env_id!r}: {err}") from err
+    creator = load_env_creator(entry_point) if isinstance(entry_point, str) else entry_point
+    params = inspect.signature(creator).parameters
+    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
+        return None
+    return dict(params)
+
+
+def env_settings(cfg: Mapping[str, Any]) -> dict[str, Any]:
+    """Every setting a task config (``task``) gives its env, the constructor's defaults filled in: what the env is.
+
+    Two task configs that list different kwargs but make the same env give equal settings.
+    """
+    env_cfg = dict(cfg["env"])
+    env_id = env_cfg.pop("id", None)
+    if not env_id:
+        raise TaskError("task.env.id is missing: name a registered gymnasium env id")
+    params = constructor_parameters(env_id) or {}
+    defaults = {n: p.default for n, p in params.items() if p.default is not inspect.Parameter.empty}
+    settings = {"id": env_id, **defaults, **_with_horizon(env_id, env_cfg, int(cfg["horizon"]))}
+    return {key: _plain(value) for key, value in settings.items()}
+
+
+def _plain(value: Any) -> Any:
+    """Tuples as lists, recursively (constructor defaults against config lists)."""
+    return [_plain(v) for v in value] if isinstance(value, (tuple, list)) else value
+
+
+def _with_horizon(env_id: str, env_cfg: dict[str, Any], horizon: int) -> dict[str, Any]:
+    """``env_cfg`` plus the one horizon: the env's ``horizon`` kwarg if it has one, else gymnasium's time limit."""
+    if "horizon" in env_cfg and int(env_cfg["horizon"]) != horizon:
+        raise TaskError(
+            f"task.env.horizon={env_cfg['horizon']} disagrees with task.horizon={horizon}: set task.horizon only "
+            "(it is the env's horizon too)"
+        )
+    params = constructor_parameters(env_id)
+    if params is not None and "horizon" in params:
+        return {**env_cfg, "horizon": horizon}
+    return {**env_cfg, "max_episode_steps": horizon}
+
+
+def _state_names(names: Sequence[str] | None, env: gymnasium.Env, state_dim: int) -> tuple[str, ...]:
+    """``task.state_names``, else the env's ``state_names``, else ``x[0]``, ``x[1]``, ...: `D`."""
+    names = getattr(env, "state_names", None) if names is None else names
+    if names is None:
+        return tuple(f"x[{d}]" for d in range(state_dim))
+    if len(names) != state_dim:
+        raise TaskError(f"task.state_names names {len(names)} dimensions, the state has {state_dim}: {list(names)}")
+    return tuple(str(n) for n in names)
 
 
 def _start_distribution(

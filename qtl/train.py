@@ -1,30 +1,47 @@
-"""``qtl-train``: the Hydra entry point — config in, Algorithm 1 run in Hydra's output directory."""
+"""``qtl-train``: the Hydra entry point — config in, checked, Algorithm 1 run in Hydra's output directory.
+
+Bad input (a :class:`~qtl.errors.UserError`, or Hydra's own composition errors such as a typo'd
+key) is reported as one line on stderr and in the run's ``train.log``; ``HYDRA_FULL_ERROR=1`` or
+``hydra.verbose=...`` shows the traceback instead.
+"""
 
 from __future__ import annotations
 
+import copy
 import logging
+import os
+import sys
+from collections.abc import Sequence
 from pathlib import Path
 
 import hydra
 import torch
 from hydra.core.hydra_config import HydraConfig
+from hydra.errors import HydraException, MissingConfigException
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
 
-from qtl.checkpoint import latest_checkpoint, load_checkpoint
-from qtl.config import TrainConfig, register_configs
-from qtl.errors import CheckpointError
-from qtl.loop import DTYPES, RunResult, run
+from qtl.build import DTYPES
+from qtl.checkpoint import CHECKPOINT_DIR, latest_checkpoint, load_checkpoint
+from qtl.config import TrainConfig, check_budget, check_group_keys, register_configs, show_progress, typed_groups
+from qtl.errors import CheckpointError, UserError
+from qtl.loop import RunResult, run
+from qtl.metrics import first_success
+from qtl.task import env_settings
 
 log = logging.getLogger(__name__)
 
 # What a resumed run may change of the interrupted run's configuration.
 RESUME_OVERRIDABLE = frozenset({"episodes", "progress", "figure_every", "threads", "device", "resume"})
+HYDRA_DIR = ".hydra"  # the run's record of its configuration, as Hydra lays it out
+FULL_ERROR = "HYDRA_FULL_ERROR"  # Hydra's switch for full tracebacks; qtl-train honours it too
 
 
 def stored_config(checkpoint: dict) -> DictConfig:
     """A checkpoint's run configuration, checked against (and completed by) the schema."""
-    return OmegaConf.merge(OmegaConf.structured(TrainConfig), OmegaConf.create(checkpoint["config"]))
+    stored = typed_groups(OmegaConf.create(checkpoint["config"]))
+    return OmegaConf.merge(OmegaConf.structured(TrainConfig), stored)
 
 
 def resume_config(run_dir: Path, overrides: list[str]) -> DictConfig:
@@ -45,6 +62,15 @@ def resume_config(run_dir: Path, overrides: list[str]) -> DictConfig:
     return cfg
 
 
+def comparable(cfg: DictConfig) -> dict:
+    """What a run computes from: ``cfg`` resolved, less the keys a resume may change, the env's defaults filled in."""
+    plain = OmegaConf.to_container(cfg, resolve=True)
+    for key in RESUME_OVERRIDABLE:
+        plain.pop(key, None)
+    plain["task"]["env"] = env_settings(plain["task"])
+    return plain
+
+
 def auto_resume(run_dir: Path, cfg: DictConfig) -> DictConfig:
     """``resume=auto`` (sweeps): continue the run in ``run_dir`` if it holds one of this config, else start it.
 
@@ -57,8 +83,7 @@ def auto_resume(run_dir: Path, cfg: DictConfig) -> DictConfig:
         cfg.resume = None
         return cfg
     stored = stored_config(checkpoint)
-    mine = {k: v for k, v in OmegaConf.to_container(cfg).items() if k not in RESUME_OVERRIDABLE}
-    theirs = {k: v for k, v in OmegaConf.to_container(stored).items() if k not in RESUME_OVERRIDABLE}
+    mine, theirs = comparable(cfg), comparable(stored)
     if mine != theirs:
         differ = sorted(k for k in mine.keys() | theirs.keys() if mine.get(k) != theirs.get(k))
         raise CheckpointError(f"resume=auto: {str(run_dir)!r} holds a run of another configuration (differs: {differ})")
@@ -68,9 +93,57 @@ def auto_resume(run_dir: Path, cfg: DictConfig) -> DictConfig:
     return stored
 
 
+def refuse_existing_run(output_dir: Path) -> None:
+    """A fresh run must not start over a run directory that holds checkpoints (checked before anything is written)."""
+    if any((output_dir / CHECKPOINT_DIR).glob("episode_*.pt")):
+        raise CheckpointError(
+            f"{str(output_dir)!r} already holds a run's checkpoints: resume={output_dir} continues it (resume=auto in "
+            "a sweep), or choose another hydra.run.dir; nothing was overwritten"
+        )
+
+
+def record_config(cfg: DictConfig, output_dir: Path) -> None:
+    """What Hydra would write to ``<run>/.hydra/`` (config, Hydra's config, overrides), once the run is accepted."""
+    hydra_dir = output_dir / HYDRA_DIR
+    hydra_dir.mkdir(parents=True, exist_ok=True)
+    (hydra_dir / "config.yaml").write_text(OmegaConf.to_yaml(cfg), encoding="utf-8")
+    (hydra_dir / "hydra.yaml").write_text(OmegaConf.to_yaml(HydraConfig.instance().cfg), encoding="utf-8")
+    overrides = OmegaConf.to_yaml(HydraConfig.get().overrides.task)
+    (hydra_dir / "overrides.yaml").write_text(overrides, encoding="utf-8")
+
+
+def prepare(cfg: DictConfig) -> tuple[DictConfig, Path]:
+    """The run's configuration and directory, every CLI-level check passed; ``.hydra/`` written for a fresh run."""
+    hydra_cfg = HydraConfig.get()
+    composed = copy.deepcopy(cfg)
+    output_dir = Path(hydra_cfg.runtime.output_dir)
+    check_budget(cfg)
+    check_group_keys(cfg)
+    if cfg.resume == "auto":
+        cfg = auto_resume(output_dir, cfg)
+    elif cfg.resume is not None:
+        resumed = Path(cfg.resume).expanduser().resolve()
+        cfg = resume_config(resumed, list(hydra_cfg.overrides.task))
+        check_budget(cfg)
+        if resumed != output_dir:  # hydra.run.dir set elsewhere: the resumed run's log gets the episodes too
+            handler = logging.FileHandler(resumed / f"{hydra_cfg.job.name}.log")
+            handler.setFormatter(logging.Formatter("[%(asctime)s][%(name)s][%(levelname)s] - %(message)s"))
+            logging.getLogger().addHandler(handler)
+        output_dir = resumed
+    if cfg.resume is None:
+        refuse_existing_run(output_dir)
+        record_config(composed, output_dir)
+    if hydra_cfg.mode == RunMode.MULTIRUN:
+        cfg.progress = False
+        cfg.threads = cfg.threads or 1
+    else:
+        cfg.progress = show_progress(composed.progress)
+    return cfg, output_dir
+
+
 def summary(result: RunResult) -> str:
     """One line: episodes, final return, success or not."""
-    first = result.first_success
+    first = first_success(result.successes)
     outcome = f"first success at episode {first}" if first is not None else "no successful episode"
     final_ok = "succeeded" if result.successes[-1] else "did not succeed"
     return (
@@ -79,31 +152,77 @@ def summary(result: RunResult) -> str:
     )
 
 
+def one_line(err: BaseException) -> str:
+    """What to fix, in one line: a UserError's message (wherever it sits in the chain), or Hydra's error condensed."""
+    seen: BaseException | None = err
+    while seen is not None:
+        if isinstance(seen, UserError):
+            return str(seen).splitlines()[0]
+        seen = seen.__cause__ or seen.__context__
+    first = next((line.strip() for line in str(err).splitlines() if line.strip()), type(err).__name__)
+    if isinstance(err, MissingConfigException) and err.options:
+        return f"{first} (options: {', '.join(err.options)})"
+    cause = err.__cause__
+    if isinstance(cause, OmegaConfBaseException) and str(cause).strip():
+        return f"{first.rstrip('.')}: {str(cause).splitlines()[0]}"
+    return first
+
+
+def _log_to_files(message: str) -> None:
+    """``message`` as an ERROR record in the run's log files only: the console gets it once, on stderr."""
+    record = log.makeRecord(log.name, logging.ERROR, __file__, 0, message, None, None)
+    for handler in logging.getLogger().handlers:
+        if isinstance(handler, logging.FileHandler):
+            handler.handle(record)
+
+
+def _wants_traceback(argv: Sequence[str]) -> bool:
+    """Whether the user asked for tracebacks: ``HYDRA_FULL_ERROR=1`` or a ``hydra.verbose=...`` override."""
+    verbose = any(a.startswith("hydra.verbose=") and a.split("=", 1)[1].lower() not in ("false", "")
+                  for a in argv)
+    return os.environ.get(FULL_ERROR) == "1" or verbose
+
+
 register_configs()
+# Whether bad input shows its traceback; main() decides before it sets HYDRA_FULL_ERROR for Hydra.
+_TRACEBACKS = {"shown": True}
 
 
 @hydra.main(version_base="1.3", config_path="pkg://qtl.configs", config_name="train")
-def main(cfg: DictConfig) -> None:
+def train(cfg: DictConfig) -> None:
     """Learn the configured task; print where the logs are and a one-line summary."""
-    hydra_cfg = HydraConfig.get()
-    output_dir = Path(hydra_cfg.runtime.output_dir)
-    if cfg.resume == "auto":
-        cfg = auto_resume(output_dir, cfg)
-    elif cfg.resume is not None:
-        output_dir = Path(cfg.resume).expanduser().resolve()
-        cfg = resume_config(output_dir, list(hydra_cfg.overrides.task))
-        # The resumed episodes are logged into the interrupted run's log too.
-        handler = logging.FileHandler(output_dir / f"{hydra_cfg.job.name}.log")
-        handler.setFormatter(logging.Formatter("[%(asctime)s][%(name)s][%(levelname)s] - %(message)s"))
-        logging.getLogger().addHandler(handler)
-    if hydra_cfg.mode == RunMode.MULTIRUN:
-        cfg.progress = False
-        cfg.threads = cfg.threads or 1
-    torch.set_default_dtype(DTYPES[cfg.dtype])
-    result = run(cfg, output_dir, resume=cfg.resume is not None)
+    try:
+        cfg, output_dir = prepare(cfg)
+        torch.set_default_dtype(DTYPES[cfg.dtype])
+        result = run(cfg, output_dir, resume=cfg.resume is not None)
+    except UserError as err:
+        _log_to_files(one_line(err))
+        if HydraConfig.get().mode == RunMode.MULTIRUN or _TRACEBACKS["shown"]:
+            raise  # the launcher records the failed job and goes on with the others
+        sys.stderr.write(f"qtl-train: {one_line(err)}\n")
+        raise SystemExit(1) from None
     line = summary(result)
     log.info(line)
     print(line)
+
+
+def main() -> None:
+    """``qtl-train``: Hydra's composition errors and bad input as one line on stderr (exit status 1)."""
+    verbose = _TRACEBACKS["shown"] = _wants_traceback(sys.argv)
+    previous = os.environ.get(FULL_ERROR)
+    os.environ[FULL_ERROR] = "1"  # Hydra re-raises instead of printing its own multi-line report
+    try:
+        train()
+    except (UserError, HydraException, OmegaConfBaseException) as err:
+        if verbose:
+            raise
+        sys.stderr.write(f"qtl-train: {one_line(err)}\n")
+        raise SystemExit(1) from None
+    finally:
+        if previous is None:
+            os.environ.pop(FULL_ERROR, None)
+        else:
+            os.environ[FULL_ERROR] = previous
 
 
 if __name__ == "__main__":

@@ -55,7 +55,7 @@ def gradcheck_value_wrt_policy_and_start(policy: torch.nn.Module, value: Callabl
 
 # A budget that exercises every line of the loop in seconds: short horizon, few evaluations.
 TINY = [
-    "task.env.horizon=8",
+    "task.horizon=8",
     "task.success.last_steps=3",
     "task.policy_size=5",
     "optimizer.max_iter=3",
@@ -78,7 +78,7 @@ def tiny_config(*overrides: str) -> DictConfig:
 # The CLI's budget in end-to-end tests: one learned episode of 6 steps, a handful of evaluations.
 CLI_TINY = [
     "episodes=1",
-    "task.env.horizon=6",
+    "task.horizon=6",
     "task.success.last_steps=2",
     "task.policy_size=4",
     "optimizer.max_iter=2",

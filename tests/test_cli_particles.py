@@ -11,7 +11,7 @@ from pathlib import Path
 # tests/test_cli.py's TINY budget, with Adam (suited to particle objectives) for L-BFGS.
 TINY_PARTICLES = [
     "episodes=1",
-    "task.env.horizon=6",
+    "task.horizon=6",
     "task.success.last_steps=2",
     "task.policy_size=4",
     "optimizer=adam",

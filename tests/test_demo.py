@@ -11,7 +11,7 @@ import pytest
 from qtl.errors import RunMismatch
 from qtl.launch import ensure_run
 
-TINY = ["task.env.horizon=6", "task.success.last_steps=2", "task.policy_size=4", "optimizer.max_iter=2",
+TINY = ["task.horizon=6", "task.success.last_steps=2", "task.policy_size=4", "optimizer.max_iter=2",
         "optimizer.restarts=1", "model.restarts=1", "model.max_iter=3"]
 
 

@@ -18,7 +18,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
 import run_experiment
 
 ROOT = Path(__file__).resolve().parents[1]
-TINY = ["episodes=1", "task.env.horizon=6", "task.success.last_steps=2", "task.policy_size=4",
+TINY = ["episodes=1", "task.horizon=6", "task.success.last_steps=2", "task.policy_size=4",
 
 
 @pytest.fixture(scope="module")

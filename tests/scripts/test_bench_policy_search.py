@@ -12,7 +12,7 @@ ROOT = Path(__file__).resolve().parents[2]
 SCRIPT = ROOT / "scripts" / "bench_policy_search.py"
 TINY = [
     "--sizes", "60", "--dtypes", "float64", "--threads", "1", "--repeats", "1",
-    "--overrides", "task.env.horizon=10", "task.success.last_steps=3",
+    "--overrides", "task.horizon=10", "task.success.last_steps=3",
     "--mm-overrides", "optimizer.max_iter=3", "optimizer.restarts=1",
     "--particles-overrides", "optimizer.steps=3", "propagation.num_particles=20",
 ]

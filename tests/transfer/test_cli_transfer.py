@@ -44,7 +44,7 @@ def test_readme_transfer_command_runs_and_logs_compliance(source_dir, tmp_path):
     [
         (["rule=forgetting", "rule.gamma=1.2"], "rule.gamma must be in [0, 1]"),
         (["rule=sometimes"], "rule/sometimes"),
-        (["approach=qtl_bayesian", "task=mountaincar", "task.env.horizon=6"], "transfer only works within one family"),
+        (["approach=qtl_bayesian", "task=mountaincar", "task.horizon=6"], "transfer only works within one family"),
         (["approach=qtl_bayesian", "task.angle_dims=[]"], "angle dimensions is [2] in the source run"),
     ],
 )
