@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Set up (or reuse) the project's virtual environment in .venv: torch==2.13.0 (CPU) first, then
-# qtl with its dev extras. Idempotent: a second run installs nothing when nothing changed.
+# qtl with its dev extras, then qtl's native kernel (gcc; optional). Idempotent: a second run
+# installs and compiles nothing when nothing changed.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -24,3 +25,8 @@ if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ] || ! .venv/bin/python -c 'import
   "${pip[@]}" install -e ".[dev]"
   echo "$want" > "$stamp"
 fi
+
+# The native exp-sum kernel (qtl/kernels/native/exp_sum.c), compiled once per source, flags and CPU.
+# Optional: without it qtl uses the torch path, and a failed build says so in one line.
+.venv/bin/python -m qtl.kernels.native.build --optional \
+  || echo "qtl: native exp-sum kernel not built; qtl will use the torch path" >&2

@@ -11,6 +11,8 @@ import pytest
 from qtl.errors import RunMismatch
 from qtl.launch import ensure_run
 
+pytestmark = pytest.mark.e2e  # runs the real CLI in subprocesses: -m 'not e2e' skips it
+
 TINY = ["task.horizon=6", "task.success.last_steps=2", "task.policy_size=4", "optimizer.max_iter=2",
         "optimizer.restarts=1", "model.restarts=1", "model.max_iter=3"]
 

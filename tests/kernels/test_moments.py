@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from qtl.gaussian import Gaussian
-from qtl.kernels import SEKernelMoments, weighted_exp_sum
+from qtl.kernels import SEKernelMoments
 from qtl.models import GPPosteriorCache
 
 DTYPE = torch.float64
@@ -26,23 +26,6 @@ def gp_moments(cache: GPPosteriorCache) -> SEKernelMoments:
 def model(gp_factory):
     """E = 3 outputs on a 6-D input (3-D state with 1 angle → 4 features, 2 actions), n = 40."""
     return gp_factory(40, 3, 2, (1,), seed=11)
-
-
-def test_weighted_exp_sum_value_and_gradcheck():
-    gen = torch.Generator().manual_seed(0)
-    a = (0.3 * torch.randn(2, 3, 5, 4, generator=gen, dtype=DTYPE)).requires_grad_()
-    b = (0.3 * torch.randn(2, 3, 6, 4, generator=gen, dtype=DTYPE)).requires_grad_()
-    w = torch.randn(3, 5, 6, generator=gen, dtype=DTYPE).requires_grad_()  # broadcast over dim 0
-    expected = (w * torch.exp(a @ b.mT)).sum((-2, -1))
-    # Whole matrix at once, and in blocks of 2 rows (the last block partial).
-    for rows in (5, 2):
-        torch.testing.assert_close(weighted_exp_sum(a, b, w, block_rows=rows), expected)
-        assert torch.autograd.gradcheck(lambda *t, r=rows: weighted_exp_sum(*t, block_rows=r), (a, b, w))
-    # A with a broadcast batch dimension; W with the full batch shape.
-    a1 = a[:1].detach().clone().requires_grad_()
-    assert torch.autograd.gradcheck(lambda *t: weighted_exp_sum(*t, block_rows=2), (a1, b, w))
-    w_full = w.detach().expand(2, -1, -1, -1).clone().requires_grad_()
-    assert torch.autograd.gradcheck(lambda *t: weighted_exp_sum(*t, block_rows=2), (a, b, w_full))
 
 
 def test_posterior_reference_matches_dynamics_gp(model, posterior):

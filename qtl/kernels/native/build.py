@@ -1,0 +1,108 @@
+"""Build the native exp-sum kernel into this package directory, unless it is already built (cached).
+
+    python -m qtl.kernels.native.build [--force] [--optional]
+
+Compiles `exp_sum.c` with `artefact.COMPILER` and `artefact.FLAGS` into `_exp_sum-<key>.so`, the key
+a hash of the source, the flags and the CPU (so a changed source or another machine rebuilds), then
+checks the result against the torch twin on a small problem before keeping it. ``--optional`` (used
+by `scripts/setup.sh`) turns a failed build into one line saying that qtl will use the torch path.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+from qtl.kernels.native.artefact import ARTEFACT_PREFIX, COMPILER, FLAGS, LIBS, SOURCE, artefact_path
+from qtl.kernels.native.exp_sum import NativeWeightedExpSum
+from qtl.kernels.native.library import load_exp_sum
+
+logger = logging.getLogger(__name__)
+
+# The smoke check's tolerance (relative, float64): the kernel agrees with torch to ~1e-15.
+CHECK_RTOL = 1e-12
+
+
+class BuildError(RuntimeError):
+    """The compiler failed, or the compiled kernel disagrees with the torch twin."""
+
+
+def compile_kernel(target: Path) -> None:
+    """Compile the source into ``target`` (atomically: a temporary file, then a rename)."""
+    tmp = target.with_name(f"{target.stem}.{os.getpid()}.tmp")
+    cmd = [COMPILER, *FLAGS, "-o", str(tmp), str(SOURCE), *LIBS]
+    try:
+        done = subprocess.run(cmd, capture_output=True, text=True, check=False)
+    except OSError as err:
+        raise BuildError(f"cannot run {COMPILER}: {err}") from err
+    if done.returncode != 0:
+        tmp.unlink(missing_ok=True)
+        first = (done.stderr.strip().splitlines() or ["no message"])[0]
+        raise BuildError(f"{COMPILER} failed ({first})")
+    os.replace(tmp, target)
+
+
+def check_against_torch() -> None:
+    """The built kernel's value and gradients equal the plain torch formula on a small odd-shaped problem.
+
+    A and B `2 x 3 x n x K`, W `3 x n x m` broadcast over the leading dimension (as for restarts).
+    """
+    gen = torch.Generator().manual_seed(0)
+    a = (0.3 * torch.randn(2, 3, 37, 5, generator=gen, dtype=torch.float64)).requires_grad_()
+    b = (0.3 * torch.randn(2, 3, 41, 5, generator=gen, dtype=torch.float64)).requires_grad_()
+    w = torch.rand(3, 37, 41, generator=gen, dtype=torch.float64).requires_grad_()
+    native = NativeWeightedExpSum.apply(a, b, w.expand(2, -1, -1, -1), load_exp_sum())
+    reference = (w * torch.exp(a @ b.mT)).sum((-2, -1))
+    for got, want in zip(
+        (native, *torch.autograd.grad(native.sum(), (a, b, w))),
+        (reference, *torch.autograd.grad(reference.sum(), (a, b, w))),
+        strict=True,
+    ):
+        if not torch.allclose(got, want, rtol=CHECK_RTOL, atol=0.0):
+            raise BuildError(f"the compiled kernel disagrees with torch (max error {(got - want).abs().max():.3g})")
+
+
+def build(force: bool = False) -> Path:
+    """The kernel for this source, flags and CPU: compiled and checked unless already there."""
+    target = artefact_path()
+    if target.is_file() and not force:
+        logger.debug("native exp-sum kernel up to date: %s", target)
+        return target
+    tic = time.perf_counter()
+    compile_kernel(target)
+    try:
+        check_against_torch()
+    except BaseException:
+        target.unlink(missing_ok=True)
+        raise
+    for stale in target.parent.glob(f"{ARTEFACT_PREFIX}*.so"):
+        if stale != target:
+            stale.unlink(missing_ok=True)
+    logger.info("built the native exp-sum kernel %s in %.1f s", target, time.perf_counter() - tic)
+    return target
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Command line: build (or keep) the kernel; exit status 1 on failure unless ``--optional``."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--force", action="store_true", help="rebuild even when the cached kernel is there")
+    parser.add_argument("--optional", action="store_true", help="a failed build prints one line and exits 0")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="qtl: %(message)s")
+    try:
+        build(force=args.force)
+    except (BuildError, ImportError, OSError) as err:
+        print(f"qtl: native exp-sum kernel not built ({err}); qtl will use the torch path", file=sys.stderr)
+        return 0 if args.optional else 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,240 @@
+"""The fused exp sum Σ_ij W_ij exp((A Bᵀ)_ij): the torch path, its native twin, and the switch between them."""
+
+from __future__ import annotations
+
+import itertools
+import logging
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+import torch
+from torch import Tensor
+
+from qtl.errors import UserError
+from qtl.gaussian import Gaussian
+from qtl.kernels import SEKernelMoments, exp_sum, weighted_exp_sum
+from qtl.kernels.native import build as native_build
+from qtl.kernels.native import library as native_library
+
+DTYPE = torch.float64
+RTOL = 1e-12  # native vs torch, relative, float64
+
+# (batch of A, batch of B, batch of W, n, m, K): odd n, n below a tile, n != m, n and m across the
+# kernel's row split (256) and column chunk (512), broadcast A or W (W `P x n x m` under `R x P`).
+SHAPES = [
+    ((), (), (), 1, 1, 1),
+    ((3,), (3,), (3,), 7, 5, 2),
+    ((2, 10), (2, 10), (10,), 33, 33, 8),
+    ((4,), (4,), (4,), 257, 257, 8),
+    ((1, 3), (2, 3), (3,), 300, 513, 9),
+    ((2, 1), (2, 3), (1, 3), 5, 600, 4),
+]
+SMALL = ((2, 3), (2, 3), (3,), 5, 6)  # batches of A, B, W and n, m for the K sweep
+
+
+@pytest.fixture(scope="module")
+def built() -> Path:
+    """The native kernel, built (or found in the cache); skipped where no compiler is found."""
+    try:
+        return native_build.build()
+    except native_build.BuildError as err:
+        if "cannot run" in str(err):
+            pytest.skip(f"no C compiler: {err}")
+        raise
+
+
+@pytest.fixture
+def native(built: Path) -> Iterator[str]:
+    """The native backend in effect for one test."""
+    with exp_sum.backend("native") as name:
+        yield name
+
+
+def operands(shape: tuple, seed: int, requires_grad: bool = False) -> tuple[Tensor, Tensor, Tensor]:
+    """Random A, B (entries ~ N(0, 0.3²)) and a signed W of the given batch shapes and sizes."""
+    batch_a, batch_b, batch_w, n, m, k = shape
+    gen = torch.Generator().manual_seed(seed)
+    a = 0.3 * torch.randn(*batch_a, n, k, generator=gen, dtype=DTYPE)
+    b = 0.3 * torch.randn(*batch_b, m, k, generator=gen, dtype=DTYPE)
+    w = torch.randn(*batch_w, n, m, generator=gen, dtype=DTYPE)
+    return tuple(t.requires_grad_(requires_grad) for t in (a, b, w))
+
+
+def with_grads(a: Tensor, b: Tensor, w: Tensor, name: str) -> tuple[Tensor, ...]:
+    """The sums under backend ``name`` and the gradients of a weighted total w.r.t. A, B and W."""
+    with exp_sum.backend(name):
+        value = weighted_exp_sum(a, b, w)
+    probe = torch.linspace(0.5, 1.5, value.numel(), dtype=DTYPE).view(value.shape)
+    return (value.detach(), *torch.autograd.grad((value * probe).sum(), (a, b, w)))
+
+
+def assert_relative(got: Tensor, want: Tensor, scale: Tensor, what: str) -> None:
+    """|got − want| <= RTOL · scale entrywise (scale: the magnitude the result is a sum of)."""
+    assert got.shape == want.shape, what
+    err = ((got - want).abs() / scale).max().item()
+    assert err <= RTOL, f"{what}: relative error {err:.2e} > {RTOL:.0e}"
+
+
+def test_torch_path_value_and_gradcheck():
+    gen = torch.Generator().manual_seed(0)
+    a = (0.3 * torch.randn(2, 3, 5, 4, generator=gen, dtype=DTYPE)).requires_grad_()
+    b = (0.3 * torch.randn(2, 3, 6, 4, generator=gen, dtype=DTYPE)).requires_grad_()
+    w = torch.randn(3, 5, 6, generator=gen, dtype=DTYPE).requires_grad_()  # broadcast over dim 0
+    expected = (w * torch.exp(a @ b.mT)).sum((-2, -1))
+    with exp_sum.backend("torch"):
+        # Whole matrix at once, and in blocks of 2 rows (the last block partial).
+        for rows in (5, 2):
+            torch.testing.assert_close(weighted_exp_sum(a, b, w, block_rows=rows), expected)
+            assert torch.autograd.gradcheck(lambda *t, r=rows: weighted_exp_sum(*t, block_rows=r), (a, b, w))
+        # A with a broadcast batch dimension; W with the full batch shape.
+        a1 = a[:1].detach().clone().requires_grad_()
+        assert torch.autograd.gradcheck(lambda *t: weighted_exp_sum(*t, block_rows=2), (a1, b, w))
+        w_full = w.detach().expand(2, -1, -1, -1).clone().requires_grad_()
+        assert torch.autograd.gradcheck(lambda *t: weighted_exp_sum(*t, block_rows=2), (a, b, w_full))
+
+
+@pytest.mark.parametrize(("shape", "seed"), [(s, i) for i, s in enumerate(SHAPES)])
+def test_native_equals_torch(built, shape, seed):
+    a, b, w = operands(shape, seed, requires_grad=True)
+    native = with_grads(a, b, w, "native")
+    reference = with_grads(a, b, w, "torch")
+    # Scales: the same sums and gradients with |W|, so that cancellation in a signed W is not
+    # mistaken for an error (the 1e-12 is relative to what the result is a sum of).
+    abs_w = w.detach().abs().requires_grad_()
+    scale = with_grads(a, b, abs_w, "torch")
+    grad_w_scale = reference[3].abs().amax()
+    scales = (scale[0], scale[1].abs().amax(), scale[2].abs().amax(), grad_w_scale)
+    for got, want, mag, what in zip(native, reference, scales, ("value", "A", "B", "W"), strict=True):
+        assert_relative(got, want, mag, f"{shape} {what}")
+
+
+@pytest.mark.parametrize("k", range(1, 10))
+def test_native_equals_torch_for_every_k(built, k):
+    a, b, w = operands((*SMALL, k), k, requires_grad=True)
+    w = w.detach().abs().requires_grad_()  # positive weights: entrywise relative errors
+    for got, want in zip(with_grads(a, b, w, "native"), with_grads(a, b, w, "torch"), strict=True):
+        assert_relative(got, want, want.abs(), f"K={k}")
+
+
+def test_native_gradcheck(native):
+    for shape in [((2, 3), (2, 3), (3,), 5, 6, 4), ((1,), (2,), (), 3, 4, 2), ((), (), (), 259, 3, 1)]:
+        a, b, w = operands(shape, 3, requires_grad=True)
+        assert torch.autograd.gradcheck(weighted_exp_sum, (a, b, w)), shape
+    # Only some operands need gradients (the GP dynamics: W fixed).
+    a, b, w = operands(((2, 3), (2, 3), (3,), 5, 6, 4), 4)
+    assert torch.autograd.gradcheck(weighted_exp_sum, (a.requires_grad_(), b, w))
+    assert torch.autograd.gradcheck(weighted_exp_sum, (a, b.requires_grad_(), w))
+
+
+def test_native_does_not_depend_on_the_thread_count(native):
+    a, b, w = operands(((2, 10), (2, 10), (10,), 600, 300, 8), 5, requires_grad=True)
+    threads = torch.get_num_threads()
+    results = []
+    try:
+        for count in (1, 3):
+            torch.set_num_threads(count)
+            value = weighted_exp_sum(a, b, w)
+            results.append((value, *torch.autograd.grad(value.sum(), (a, b, w))))
+    finally:
+        torch.set_num_threads(threads)
+    for one, three in zip(*results, strict=True):
+        assert torch.equal(one, three)
+
+
+def test_native_does_not_copy_a_broadcast_w(native, monkeypatch):
+    a, b, w = operands(SHAPES[2], 6)
+    seen = []
+
+    def spy(self: native_library.ExpSumLibrary, *args: Tensor) -> Tensor:
+        seen.append(args)
+        raise StopIteration  # enough: the operands are what this test looks at
+
+    monkeypatch.setattr(native_library.ExpSumLibrary, "forward", spy)
+    with pytest.raises(StopIteration):
+        weighted_exp_sum(a, b, w)
+    w_seen, offsets = seen[0][2], seen[0][3]
+    assert w_seen.data_ptr() == w.data_ptr() and w_seen.stride()[0] == 0
+    assert offsets[2].tolist() == [p * 33 * 33 for p in range(10)] * 2
+    # The items that share a W slice are visited one after another.
+    assert offsets[3].tolist() == list(itertools.chain.from_iterable((p, p + 10) for p in range(10)))
+
+
+def test_other_dtypes_take_the_torch_path(native):
+    a, b, w = (t.float() for t in operands(SHAPES[1], 7))
+    with exp_sum.backend("torch"):
+        reference = weighted_exp_sum(a, b, w)
+    assert torch.equal(weighted_exp_sum(a, b, w), reference)
+
+
+@pytest.mark.parametrize("backend", ["torch", "native"])
+def test_empty_sums_are_zero(built, backend):
+    for n, m in [(0, 4), (4, 0)]:
+        a, b, w = operands(((2,), (2,), (2,), n, m, 3), 8, requires_grad=True)
+        with exp_sum.backend(backend):
+            value = weighted_exp_sum(a, b, w)
+        assert torch.equal(value, torch.zeros(2, dtype=DTYPE))
+        grads = torch.autograd.grad(value.sum(), (a, b, w), allow_unused=True)
+        assert all(g is None or not g.any() for g in grads)
+
+
+def test_shape_mismatch_is_a_clear_error():
+    a, b, w = operands(SHAPES[1], 9)
+    with pytest.raises(ValueError, match=r"W `\.\.\. x n x m`"):
+        weighted_exp_sum(a, b, w.mT)
+
+
+def test_moments_agree_across_backends(built, gp_factory, cov_factory):
+    model = gp_factory(40, 3, 2, (1,), seed=11)
+    cache = model.posterior_cache()
+    theta = cache.hyperparameters
+    gen = torch.Generator().manual_seed(12)
+    mean = (0.5 * torch.randn(2, 6, generator=gen, dtype=DTYPE)).requires_grad_()
+    state = Gaussian(mean, cov_factory(6, 0.7, gen, batch=(2,)))
+    results = {}
+    for name in ("torch", "native"):
+        with exp_sum.backend(name):
+            moments = SEKernelMoments(cache.inputs, cache.beta, theta.lengthscales, theta.signal_variance, cache.K_inv)
+            out = moments(state)
+        results[name] = (out.mean, out.cov, out.cross_cov, *torch.autograd.grad(out.cov.sum(), mean))
+    names = ("mean", "cov", "cross_cov", "d cov/d mean")
+    for got, want, what in zip(results["native"], results["torch"], names, strict=True):
+        assert_relative(got, want, want.abs().amax(), what)
+
+
+def test_auto_falls_back_to_torch_and_says_so_once(monkeypatch, caplog, tmp_path):
+    monkeypatch.setattr(native_library, "artefact_path", lambda: tmp_path / "missing.so")
+    monkeypatch.setattr(exp_sum._STATE, "fallback_logged", False)
+    with caplog.at_level(logging.INFO, logger=exp_sum.__name__):
+        with exp_sum.backend("auto") as first:
+            assert first == "torch" == exp_sum.active_backend()
+        with exp_sum.backend("auto") as second:
+            assert second == "torch"
+    lines = [r.getMessage() for r in caplog.records if r.name == exp_sum.__name__]
+    assert len(lines) == 1 and "missing.so" in lines[0] and exp_sum.BUILD_COMMAND in lines[0]
+
+
+def test_auto_falls_back_when_the_library_does_not_load(monkeypatch, tmp_path):
+    broken = tmp_path / "broken.so"
+    broken.write_bytes(b"not a shared library")
+    monkeypatch.setattr(native_library, "artefact_path", lambda: broken)
+    monkeypatch.setattr(exp_sum._STATE, "fallback_logged", True)
+    with exp_sum.backend("auto") as name:
+        assert name == "torch"
+
+
+def test_native_requested_but_missing_is_a_user_error(monkeypatch, tmp_path):
+    monkeypatch.setattr(native_library, "artefact_path", lambda: tmp_path / "missing.so")
+    before = exp_sum.active_backend()
+    with pytest.raises(UserError, match=r"kernels.backend=native.*qtl.kernels.native.build"):
+        exp_sum.use_backend("native")
+    assert exp_sum.active_backend() == before
+    with pytest.raises(UserError, match="one of auto, native, torch"):
+        exp_sum.use_backend("fast")
+
+
+def test_backend_context_restores_the_previous_choice(built):
+    with exp_sum.backend("torch"):
+        with exp_sum.backend("native") as name:
+            assert name == exp_sum.active_backend() == "native"
+        assert exp_sum.active_backend() == "torch"

@@ -1,0 +1,53 @@
+"""The native kernel's build: cached by source, flags and CPU; a failed build leaves the torch path."""
+
+from __future__ import annotations
+
+import shutil
+
+import pytest
+
+from qtl.kernels.native import artefact
+from qtl.kernels.native import build as native_build
+
+
+@pytest.fixture(scope="module")
+def built():
+    """The kernel, built or found in the cache; skipped where no compiler is found."""
+    try:
+        return native_build.build()
+    except native_build.BuildError as err:
+        if "cannot run" in str(err):
+            pytest.skip(f"no C compiler: {err}")
+        raise
+
+
+def test_a_second_build_is_a_cache_hit(built):
+    stamp = built.stat().st_mtime_ns
+    assert native_build.build() == built
+    assert built.stat().st_mtime_ns == stamp
+    assert built.parent == artefact.SOURCE.parent and built.name.startswith(artefact.ARTEFACT_PREFIX)
+
+
+def test_the_cache_key_follows_source_flags_and_cpu(monkeypatch, tmp_path):
+    key, original = artefact.cache_key(), artefact.SOURCE
+    source = tmp_path / "exp_sum.c"
+    shutil.copy(original, source)
+    monkeypatch.setattr(artefact, "SOURCE", source)
+    assert artefact.cache_key() == key
+    source.write_text(source.read_text() + "\n/* changed */\n")
+    assert artefact.cache_key() != key
+    shutil.copy(original, source)
+    monkeypatch.setattr(artefact, "FLAGS", (*artefact.FLAGS, "-DSOMETHING"))
+    assert artefact.cache_key() != key
+    monkeypatch.setattr(artefact, "FLAGS", artefact.FLAGS[:-1])
+    monkeypatch.setattr(artefact, "cpu_tag", lambda: "another-cpu")
+    assert artefact.cache_key() != key
+
+
+def test_a_failed_build_keeps_the_kernel_and_says_torch_once(built, monkeypatch, capsys):
+    monkeypatch.setattr(native_build, "COMPILER", "/nonexistent/cc")
+    assert native_build.main(["--force", "--optional"]) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "torch path" in err[0] and "/nonexistent/cc" in err[0]
+    assert native_build.main(["--force"]) == 1
+    assert built.is_file()  # the cached kernel is untouched by a failed rebuild
