@@ -11,6 +11,8 @@ import pytest
 
 from tests.helpers import CLI_TINY
 
+pytestmark = pytest.mark.e2e  # runs the real CLI in subprocesses: -m 'not e2e' skips it
+
 TINY = [*CLI_TINY, "progress=false"]
 
 

@@ -8,9 +8,8 @@ import pytest
 import torch
 
 import envs  # noqa: F401  (registers the ids)
-from qtl.data import TransitionDataset
+from qtl.data import TransitionDataset, gp_training_pairs
 from qtl.features import AngleFeatures
-from qtl.loop import gp_training_pairs
 from qtl.models import DynamicsGP
 from qtl.transfer.compliance import Compliance, leave_one_out, task_compliance
 

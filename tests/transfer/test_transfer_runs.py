@@ -11,10 +11,11 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
+from qtl.build import build
 from qtl.checkpoint import latest_checkpoint, load_checkpoint
 from qtl.errors import TransferError
 from qtl.features import AngleFeatures
-from qtl.loop import initial_policy, run
+from qtl.loop import run
 from qtl.models import GPHyperparameters
 from qtl.task import Task
 from qtl.transfer import Bayesian, SourceRun
@@ -125,7 +126,7 @@ def test_policy_transfer_reproduces_the_source_policy_exactly(source_dir, tmp_pa
     # The target's first episode applied exactly the source policy's actions to its states.
     task = Task.from_config(OmegaConf.to_container(cfg.task, resolve=True))
     features = AngleFeatures(task.state_dim, task.angle_dims)
-    policy = initial_policy(tiny_config("seed=3"), task, features, torch.float64)
+    policy = build(tiny_config("seed=3")).initial_policy()
     policy.load_state_dict(source.policy)
     states = torch.as_tensor(target["dataset"]["states"][0][:-1])
     with torch.no_grad():

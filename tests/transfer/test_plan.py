@@ -1,0 +1,114 @@
+"""TransferPlan: the two seams of Algorithm 1 (ψ_0, θ_i), its checks before any work, its checkpointed state."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from hydra.utils import instantiate
+from omegaconf import OmegaConf
+
+from qtl.errors import TransferError
+from qtl.features import AngleFeatures
+from qtl.loop import run
+from qtl.models import GPHyperparameters
+from qtl.policies import SquashedPolicy
+from qtl.task import Task
+from qtl.transfer import Bayesian, Forgetting, Free, NoTransfer, SourceRun
+from qtl.transfer.plan import TransferPlan
+from tests.helpers import tiny_config
+
+TASK = Task.from_config(OmegaConf.to_container(tiny_config("task.env.pole_mass=2.0").task, resolve=True))
+FEATURES = AngleFeatures(TASK.state_dim, TASK.angle_dims)
+
+
+def learned(scale: float) -> GPHyperparameters:
+    """A θ_p of the task's shape `E x (D + 2)`."""
+    rows = torch.full((TASK.state_dim, TASK.gp_input_dim + 2), scale, dtype=torch.float64)
+    return GPHyperparameters.from_natural(rows)
+
+
+def plan(rule, **transfer) -> TransferPlan:
+    return TransferPlan(transfer, rule, TASK, FEATURES)
+
+
+def test_without_a_source_it_is_pilco():
+    pilco = plan(NoTransfer())
+    assert pilco.describe() == "no transfer (PILCO)" and pilco.source is None and not pilco.transfer_theta
+    assert pilco.fit_start() is None and math.isnan(pilco.compliance(None))
+    theta_p = learned(0.5)
+    assert pilco.update(theta_p, 8) is theta_p
+
+
+def test_theta_s_first_then_the_rule(finished_source):
+    forgetting = plan(Forgetting(gamma=0.5), source=str(finished_source))
+    source = SourceRun.load(finished_source)
+    assert "θ_s from" in forgetting.describe() and "ψ_s" not in forgetting.describe()
+    assert forgetting.fit_start() is None  # evidence maximisation starts from PILCO's heuristic
+    first = forgetting.update(learned(0.5), 8)
+    torch.testing.assert_close(first.natural(), source.theta.natural(), rtol=0, atol=0)  # θ_0 = θ_s (Eq. 6)
+    second = forgetting.update(learned(0.5), 16)
+    expected = Forgetting(gamma=0.5).update(first, learned(0.5), 16)  # Eq. 7
+    torch.testing.assert_close(second.natural(), expected.natural(), rtol=0, atol=0)
+    # The checkpointed state restores θ_{i−1} and the rule's.
+    restored = plan(Forgetting(gamma=0.5), source=str(finished_source))
+    restored.load_state_dict(forgetting.state_dict())
+    torch.testing.assert_close(restored.update(learned(2.0), 24).natural(),
+                               forgetting.update(learned(2.0), 24).natural(), rtol=0, atol=0)
+
+
+def test_free_rule_warm_starts_evidence_maximisation_from_theta_s(finished_source):
+    free = plan(Free(), source=str(finished_source))
+    assert free.fit_start() is free.source.theta
+
+
+def test_compliance_gate_drops_theta_s_for_good(finished_source):
+    gated = plan(Bayesian(), source=str(finished_source), min_compliance=0.3)
+    assert 0.0 <= gated.compliance(gated.source.model(FEATURES)) <= 1.0
+    gated.update(learned(0.5), 8, compliance=0.9)
+    theta_p = learned(0.7)
+    assert gated.update(theta_p, 16, compliance=0.1) is theta_p and gated.fallen_back
+    assert gated.update(learned(0.9), 24, compliance=0.9).natural().max() == pytest.approx(0.9)
+    assert gated.fit_start() is None
+
+
+def test_transferred_policy_is_psi_s(finished_source):
+    transfer = plan(NoTransfer(), source=str(finished_source), hyperparameters=False, policy=True)
+    draws = TASK.start_distribution().sample(10, generator=torch.Generator().manual_seed(0))
+    inner = instantiate(tiny_config().policy)(TASK.feature_dim, TASK.action_dim, start_features=FEATURES(draws))
+    made = SquashedPolicy(inner, torch.as_tensor(TASK.action_bound))  # as the loop squashes it
+    transfer.initial_policy(made)
+    for name, value in transfer.source.policy.items():
+        assert torch.equal(made.state_dict()[name], value)
+
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        (["rule=bayesian"], "rule=bayesian starts from the source's θ_s"),
+        (["transfer.policy=true"], "transfer.policy=true needs a source run"),
+        (["transfer.min_compliance=0.3"], "transfer.min_compliance needs a source run"),
+        (["rule=forgetting", "rule.gamma=1.5"], r"rule.gamma must be in \[0, 1\]"),
+    ],
+)
+def test_bad_transfer_configs_fail_before_any_work(tmp_path, overrides, message):
+    with pytest.raises(ValueError, match=message):
+        run(tiny_config(*overrides), tmp_path)
+    assert not any(tmp_path.iterdir())  # nothing written
+
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        ([], "rule=none ignores θ_s"),
+        (["rule=forgetting", "transfer.hyperparameters=false"], "rule=forgetting updates θ_s, but"),
+        (["approach=qtl_bayesian", "transfer.min_compliance=1.5"], r"min_compliance must be in \[0, 1\]"),
+        (["approach=qtl_bayesian", "transfer.compliance_resolution=-0.1"], "compliance_resolution must be >= 0"),
+        (["approach=policy_transfer", "task.policy_size=4"], "the source policy"),
+    ],
+)
+def test_inconsistent_transfer_with_a_source_fails_before_any_work(finished_source, tmp_path, overrides, message):
+    with pytest.raises(TransferError, match=message):
+        run(tiny_config(f"transfer.source={finished_source}", *overrides), tmp_path)
+    assert not any(tmp_path.iterdir())
