@@ -3,12 +3,12 @@
 Data: real transitions of the configured cart-pole (``qtl/CartPoleSwingUp-v0``, 0.5 kg, the defaults
 of ``configs/task/cartpole.yaml``), episodes of uniform random actions alternating with episodes of a
 random RBF policy, cut at n tuples, seeded. GP inputs are built as the loop builds them
-(``qtl.loop.gp_training_pairs``); one exact ``DynamicsGP`` per n is fitted once in float64 with
+(``qtl.data.gp_training_pairs``); one exact ``DynamicsGP`` per n is fitted once in float64 with
 ``fit(restarts=1)`` (a benchmark model; the loop uses ``model.restarts``) and cached under
 ``--cache-dir``. Each (propagator, n, dtype) then runs in a fresh subprocess, so that its peak
 resident memory is its own: the default ``train`` config composed with the propagator's overrides,
-propagator, optimiser, initial policy, start distribution, horizon and reward made exactly as
-``qtl/loop.py`` makes them, and the model loaded in the run's dtype. Measured: the median of
+propagator, optimiser, initial policy, start distribution, horizon and reward made by ``qtl.build.build``,
+as the loop makes them, and the model loaded in the run's dtype. Measured: the median of
 ``--repeats`` rollouts + gradients (``expected_return(...).backward()``) after one warm-up, and one
 policy search timed as the loop times it (propagator construction + search). ``--device cuda``: model,
 policy and propagation on the GPU (the targets are judged on the CPU only). Writes JSON (default
@@ -40,33 +40,21 @@ from typing import Any
 import numpy as np
 import torch
 from hydra import compose, initialize_config_module
-from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import benchlib
 
+from qtl.build import DTYPES, build, resolve_device
 from qtl.config import register_configs
-from qtl.data import TransitionDataset
+from qtl.data import TransitionDataset, gp_training_pairs
+from qtl.episodes import policy_actor, random_actor, run_episode
 from qtl.features import AngleFeatures
-from qtl.loop import (
-    DTYPES,
-    ENV_STREAM,
-    SEARCH_STREAM,
-    derive_seed,
-    gp_training_pairs,
-    initial_policy,
-    instantiate_checked,
-    policy_actor,
-    random_actor,
-    resolve_device,
-    run_episode,
-    torch_generator,
-)
+from qtl.gaussian import Gaussian
 from qtl.models import DynamicsGP
 from qtl.policies import RBFPolicy, SquashedPolicy
-from qtl.rewards import ExpectedSaturatingReward
-from qtl.seeding import seed_everything
+from qtl.propagation import Propagator
+from qtl.seeding import ENV_STREAM, SEARCH_STREAM, derive_seed, seed_everything, torch_generator
 from qtl.task import Task
 
 SIZES = [250, 500, 1000]
@@ -113,7 +101,7 @@ DESCRIPTION = (
     "`model.restarts = 3`); the float32 rows load the same θ and data in float32 (model, posterior cache, "
     "policy and start distribution in float32, as the loop with `dtype=float32`). Propagator, optimiser, "
     "initial policy ψ_0, start distribution, horizon and reward are made from the composed default config "
-    "exactly as `qtl/loop.py` makes them; the search is timed as the loop times it (propagator construction + "
+    "by `qtl.build.build`, as the loop makes them; the search is timed as the loop times it (propagator construction + "
     "search; torch.optim's one-off lazy import, ~1 s, is paid before, as the loop's GP fit pays it before its "
     "first search). Each configuration runs in a fresh subprocess; peak RSS is its `getrusage` max RSS (torch, "
     "GPyTorch and the model included). Evaluations: objective calls of the search (rollout + gradient each)."
@@ -145,11 +133,6 @@ def compose_config(propagator: str, dtype_name: str, overrides: list[str]) -> Di
     register_configs()
     with initialize_config_module(config_module="qtl.configs", version_base="1.3"):
         return compose(config_name="train", overrides=[*PROPAGATORS[propagator], f"dtype={dtype_name}", *overrides])
-
-
-def make_task(cfg: DictConfig) -> Task:
-    """The configured task, as the loop builds it."""
-    return Task.from_config(OmegaConf.to_container(cfg.task, resolve=True))
 
 
 def data_policy(task: Task, num_basis: int, generator: torch.Generator) -> SquashedPolicy:
@@ -195,7 +178,7 @@ def ensure_model(cfg: DictConfig, n: int, seed: int, cache_dir: Path) -> tuple[P
     info_path = path.with_suffix(".json")
     if path.exists() and info_path.exists():
         return path, {**json.loads(info_path.read_text()), "cached": True}
-    task = make_task(cfg)
+    task = build(cfg).task
     data = collect(task, int(cfg.task.policy_size), n, seed)
     inputs, targets = gp_training_pairs(data, AngleFeatures(task.state_dim, task.angle_dims), torch.float64)
     model = DynamicsGP(inputs, targets)
@@ -220,7 +203,7 @@ def warm_up_optimisers() -> None:
     torch.optim.LBFGS([dummy])
 
 
-def rollout_and_gradient(propagator: Any, start: Any, horizon: int) -> float:
+def rollout_and_gradient(propagator: Propagator, start: Gaussian, horizon: int) -> float:
     """One rollout of H steps and the gradient of V w.r.t. ψ; returns V."""
     propagator.policy.zero_grad()
     value = propagator.expected_return(start, horizon)
@@ -253,19 +236,13 @@ def measure(job: dict[str, Any]) -> dict[str, Any]:
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
-            # -- Everything as qtl/loop.py makes it, from the composed config. -----------------------
-            cfg = compose_config(job["propagator"], job["dtype"], job["overrides"])
-            dtype = DTYPES[cfg.dtype]
-            device = resolve_device(job["device"])
+            # -- Everything as the loop makes it (qtl.build), from the composed config. ----------------
+            cfg = compose_config(job["propagator"], job["dtype"], [*job["overrides"], f"device={job['device']}"])
             seed_everything(cfg.seed)
-            task = make_task(cfg)
-            features = AngleFeatures(task.state_dim, task.angle_dims)
-            reward = ExpectedSaturatingReward.from_spec(task.reward)
-            start = task.start_distribution(dtype).to(device=device)
-            make_propagator = instantiate(cfg.propagation)
-            search = instantiate_checked(cfg.optimizer)
-            model = DynamicsGP.load(job["model"], dtype=dtype, device=device)
-            policy = initial_policy(cfg, task, features, dtype).to(device)
+            parts = build(cfg)
+            task, reward, start, make_propagator = parts.task, parts.reward, parts.start, parts.make_propagator
+            model = DynamicsGP.load(job["model"], dtype=parts.dtype, device=parts.device)
+            policy = parts.initial_policy()
             warm_up_optimisers()
             result.update(horizon=task.horizon, propagation=OmegaConf.to_container(cfg.propagation, resolve=True),
                           optimizer=OmegaConf.to_container(cfg.optimizer, resolve=True),
@@ -285,7 +262,8 @@ def measure(job: dict[str, Any]) -> dict[str, Any]:
             if job["propagator"] == "particles":
                 # The arithmetic no implementation of the exact per-particle variance avoids: H products.
                 stage = "variance product"
-                product = variance_product_s(task.state_dim, cfg.propagation.num_particles, job["n"], dtype, device)
+                product = variance_product_s(task.state_dim, cfg.propagation.num_particles, job["n"], parts.dtype,
+                                             parts.device)
                 result["variance_products_s_per_evaluation"] = task.horizon * product
 
             # -- One policy search, timed as the loop times it (lines 6-9). --------------------------
@@ -293,8 +271,8 @@ def measure(job: dict[str, Any]) -> dict[str, Any]:
                 stage = "policy search"
                 tic = time.perf_counter()
                 propagator = make_propagator(model, policy, reward, angle_dims=task.angle_dims)
-                found = search(policy, functools.partial(propagator.expected_return, start, task.horizon),
-                               generator=torch_generator(cfg.seed, SEARCH_EPISODE, SEARCH_STREAM))
+                found = parts.search(policy, functools.partial(propagator.expected_return, start, task.horizon),
+                                     generator=torch_generator(cfg.seed, SEARCH_EPISODE, SEARCH_STREAM))
                 result.update(search_s=time.perf_counter() - tic, evaluations=found.evaluations,
                               value_found=found.value, run_values=found.run_values)
         except Exception as err:  # a benchmark records what failed and goes on

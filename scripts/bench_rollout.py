@@ -28,6 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import benchlib
 
 from envs.rewards import SaturatingReward
+from qtl.build import DTYPES
 from qtl.features import AngleFeatures
 from qtl.gaussian import Gaussian
 from qtl.kernels import moments as kernel_moments
@@ -44,7 +45,6 @@ ACTION_BOUND = 10.0
 POLE_LENGTH = 0.6
 COST_WIDTH = 0.25
 THREADS = int(os.environ.get("BENCH_THREADS", "2"))
-DTYPES = {"float64": torch.float64, "float32": torch.float32}
 DESCRIPTION = (
     "One moment-matching rollout of H = 50 steps plus the gradient of V w.r.t. the policy parameters ψ "
     "(`MomentMatching.expected_return(...).backward()`), cart-pole shape: E = 4 outputs, GP input "
@@ -73,7 +73,7 @@ def cartpole_reward() -> ExpectedSaturatingReward:
     return ExpectedSaturatingReward.from_spec(spec)
 
 
-def build(n: int, dtype: torch.dtype) -> tuple[MomentMatching, Gaussian]:
+def make_case(n: int, dtype: torch.dtype) -> tuple[MomentMatching, Gaussian]:
     """A GP on n synthetic cart-pole-like transitions, an RBF policy, and the start distribution."""
     gen = torch.Generator().manual_seed(0)
     x = torch.randn(n, STATE_DIM, generator=gen, dtype=torch.float64) * torch.tensor([1.0, 2.0, 3.0, 4.0])
@@ -105,7 +105,7 @@ def worker(n: int, dtype_name: str, repeats: int, dense: bool = False) -> dict:
     torch.set_num_threads(THREADS)
     if dense:
         kernel_moments.weighted_exp_sum = dense_weighted_exp_sum
-    propagator, start = build(n, DTYPES[dtype_name])
+    propagator, start = make_case(n, DTYPES[dtype_name])
     rss_setup = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     value = rollout_and_gradient(propagator, start)  # warm-up
     times = []

@@ -1,8 +1,8 @@
 """Benchmark the model the loop uses as data grow: exact GP up to ``model.sparse_above`` tuples, sparse GP above.
 
 For each n: n real cart-pole transitions (collected as ``bench_policy_search.py`` collects them), the dynamics
-model fitted by the loop's own ``fit_dynamics`` with the default config (``model.restarts`` overridable with
-``--restarts``; exact GP for n <= ``model.sparse_above``, SGPR with ``model.inducing`` inducing inputs above),
+model fitted as the loop fits it (``qtl.build``'s ``Parts.fit_dynamics``, default ``model=auto``; ``model.restarts``
+overridable with ``--restarts``; exact GP for n <= ``model.sparse_above``, SGPR with ``model.inducing`` above),
 then one moment-matching rollout + gradient over the task's horizon with the loop's initial policy (median of
 ``--repeats`` after one warm-up). Above the threshold the rollout's cost depends on the inducing inputs, not on
 n: the per-episode policy search stays flat. Writes JSON (default ``docs/bench/sparse.json``) and, unless
@@ -22,16 +22,13 @@ import time
 from pathlib import Path
 
 import torch
-from hydra.utils import instantiate
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import benchlib
-from bench_policy_search import collect, compose_config, make_task, rollout_and_gradient
+from bench_policy_search import collect, compose_config, rollout_and_gradient
 
-from qtl.features import AngleFeatures
-from qtl.loop import fit_dynamics, initial_policy
+from qtl.build import build
 from qtl.models import SparseDynamicsGP
-from qtl.rewards import ExpectedSaturatingReward
 
 SIZES = [500, 1000, 2000, 4000]
 SECTION = "bench_sparse"
@@ -41,16 +38,13 @@ DEFAULT_OUTPUT = benchlib.ROOT / "docs" / "bench" / "sparse.json"
 def measure(n: int, restarts: int, repeats: int, seed: int, overrides: list[str]) -> dict:
     """Fit the loop's model on n tuples and time one rollout + gradient through it."""
     cfg = compose_config("moment_matching", "float64", [f"model.restarts={restarts}", *overrides])
-    task = make_task(cfg)
-    features = AngleFeatures(task.state_dim, task.angle_dims)
+    parts = build(cfg)
+    task, start = parts.task, parts.start
     data = collect(task, int(cfg.task.policy_size), n, seed)
     tic = time.perf_counter()
-    model = fit_dynamics(data, features, cfg.model, torch.Generator().manual_seed(seed), torch.float64)
+    model = parts.fit_dynamics(data, torch.Generator().manual_seed(seed))
     fit_s = time.perf_counter() - tic
-    policy = initial_policy(cfg, task, features, torch.float64)
-    reward = ExpectedSaturatingReward.from_spec(task.reward)
-    start = task.start_distribution(torch.float64)
-    propagator = instantiate(cfg.propagation)(model, policy, reward, angle_dims=task.angle_dims)
+    propagator = parts.make_propagator(model, parts.initial_policy(), parts.reward, angle_dims=task.angle_dims)
     rollout_and_gradient(propagator, start, task.horizon)
     times = []
     for _ in range(repeats):
@@ -61,7 +55,7 @@ def measure(n: int, restarts: int, repeats: int, seed: int, overrides: list[str]
     return {"n": len(data), "model": "sparse" if sparse else "exact",
             "inducing": int(model.inducing_points.shape[0]) if sparse else None, "fit_s": fit_s,
             "fit_restarts": restarts, "rollout_grad_s_median": statistics.median(times),
-            "sparse_above": int(cfg.model.sparse_above), "horizon": task.horizon,
+            "sparse_above": cfg.model.get("sparse_above"), "horizon": task.horizon,
             "peak_rss_mib": benchlib.peak_rss_mib()}
 
 
@@ -72,7 +66,7 @@ def markdown(results: list[dict], info: dict) -> str:
         "",
         f"`{info['command']}` — {info['date']}, {info['machine']['cpu']} ({info['machine']['cores']} cores), "
         f"{info['threads']} torch threads, torch {info['machine']['torch']}. Cart-pole transitions as in the "
-        "policy-search benchmark; the model fitted by the loop's `fit_dynamics` (default config, "
+        "policy-search benchmark; the model fitted as the loop fits it (default `model=auto`, "
         f"`model.restarts={info['restarts']}`), exact up to `model.sparse_above` tuples and SGPR with "
         "`model.inducing` learned inducing inputs above; one moment-matching rollout + gradient (H = "
         f"{results[0]['horizon']}, median of the repeats after a warm-up). The peak RSS is the process's so far. "

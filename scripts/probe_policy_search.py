@@ -20,40 +20,27 @@ import time
 from pathlib import Path
 
 import torch
-from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
+from qtl.build import build
 from qtl.checkpoint import latest_checkpoint, load_checkpoint
+from qtl.config import GROUP_SCHEMAS, typed_groups
 from qtl.data import TransitionDataset
-from qtl.features import AngleFeatures
-from qtl.loop import (
-    DTYPES,
-    fit_dynamics,
-    initial_policy,
-    instantiate_checked,
-    policy_actor,
-    run_episode,
-    torch_generator,
-)
-from qtl.rewards import ExpectedSaturatingReward
-from qtl.task import Task
+from qtl.episodes import run_episode
+from qtl.seeding import torch_generator
 
 EVALUATION_SEED = 100  # real episodes use env seeds 100, 101, ...: not the run's own
-CONFIGS = Path(__file__).resolve().parents[1] / "configs"
-GROUPS = ("propagation", "optimizer")  # `group=choice` replaces the whole node, as on the CLI
 
 
 def with_overrides(cfg: DictConfig, overrides: list[str]) -> DictConfig:
-    """The run's config with ``group=choice`` (propagation, optimizer) and then ``key=value`` overrides."""
+    """The run's config with ``group=option`` (any config group's schema) and then ``key=value`` overrides."""
     rest = []
     for override in overrides:
         key, _, value = override.partition("=")
-        if key in GROUPS:
-            path = CONFIGS / key / f"{value}.yaml"
-            if not path.is_file():
-                choices = sorted(p.stem for p in (CONFIGS / key).glob("*.yaml"))
-                raise SystemExit(f"unknown {key}={value!r}: choose one of {choices}")
-            cfg[key] = OmegaConf.load(path)
+        if key in GROUP_SCHEMAS:  # `group=option` replaces the whole node, as on the CLI
+            if value not in GROUP_SCHEMAS[key]:
+                raise SystemExit(f"unknown {key}={value!r}: choose one of {sorted(GROUP_SCHEMAS[key])}")
+            cfg[key] = OmegaConf.structured(GROUP_SCHEMAS[key][value])
         else:
             rest.append(override)
     return OmegaConf.merge(cfg, OmegaConf.from_dotlist(rest))
@@ -71,29 +58,25 @@ def main() -> None:
     torch.set_num_threads(args.threads)
 
     checkpoint = load_checkpoint(args.checkpoint or latest_checkpoint(args.run_dir))
-    cfg = with_overrides(OmegaConf.create(checkpoint["config"]), overrides)
-    dtype = DTYPES[cfg.dtype]
-    task = Task.from_config(OmegaConf.to_container(cfg.task, resolve=True))
-    features = AngleFeatures(task.state_dim, task.angle_dims)
+    cfg = with_overrides(typed_groups(OmegaConf.create(checkpoint["config"])), overrides)
+    parts = build(cfg)
+    task, start = parts.task, parts.start
     data = TransitionDataset.from_state(checkpoint["dataset"])
-    model = fit_dynamics(data, features, cfg.model, torch_generator(args.seed, 0, 0), dtype)
-    policy = initial_policy(cfg, task, features, dtype)
+    model = parts.fit_dynamics(data, torch_generator(args.seed, 0, 0))
+    policy = parts.initial_policy()
     if not args.fresh:
         policy.load_state_dict(checkpoint["policy"])
-    reward = ExpectedSaturatingReward.from_spec(task.reward)
-    start = task.start_distribution(dtype)
-    propagator = instantiate(cfg.propagation)(model, policy, reward, angle_dims=task.angle_dims)
-    search = instantiate_checked(cfg.optimizer)
+    propagator = parts.make_propagator(model, policy, parts.reward, angle_dims=task.angle_dims)
     with torch.no_grad():
         before = float(propagator.expected_return(start, task.horizon))
     tic = time.perf_counter()
-    found = search(policy, functools.partial(propagator.expected_return, start, task.horizon),
+    found = parts.search(policy, functools.partial(propagator.expected_return, start, task.horizon),
                    generator=torch.Generator().manual_seed(args.seed))
     seconds = time.perf_counter() - tic
     env = task.make_env()
     real = []
     for k in range(args.episodes):
-        episode = run_episode(env, task, policy_actor(policy, features, dtype), EVALUATION_SEED + k)
+        episode = run_episode(env, task, parts.actor(policy), EVALUATION_SEED + k)
         real.append({"return": round(float(episode.rewards.sum()), 2), "success": bool(task.succeeded(episode.states))})
     env.close()
     print(json.dumps({"run": str(args.run_dir), "episode": checkpoint["episode"], "n": len(data),

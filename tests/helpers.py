@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 
 import numpy as np
 import torch
@@ -53,37 +53,59 @@ def gradcheck_value_wrt_policy_and_start(policy: torch.nn.Module, value: Callabl
     return torch.autograd.gradcheck(call, (start.mean.clone().requires_grad_(), *psi))
 
 
-# A budget that exercises every line of the loop in seconds: short horizon, few evaluations.
-TINY = [
-    "task.horizon=8",
-    "task.success.last_steps=3",
-    "task.policy_size=5",
-    "optimizer.max_iter=3",
-    "optimizer.restarts=2",
-    "model.restarts=1",
-    "model.max_iter=5",
-    "progress=false",
-    "figure_every=1",
-    "threads=1",
-]
+def as_overrides(settings: Mapping[str, object]) -> list[str]:
+    """Hydra overrides ``key=value`` of ``settings``, booleans spelled as Hydra writes them."""
+    return [f"{key}={str(value).lower() if isinstance(value, bool) else value}" for key, value in settings.items()]
+
+
+# The tiny learning budget of every test that runs the loop, defined once: 6 steps per episode, a
+# handful of policy-search and model-fit iterations. The variants below change only what they need.
+TINY_BUDGET: dict[str, object] = {
+    "task.horizon": 6,
+    "task.success.last_steps": 2,
+    "task.policy_size": 4,
+    "optimizer.max_iter": 2,
+    "optimizer.restarts": 1,
+    "model.restarts": 1,
+    "model.max_iter": 3,
+}
+# End-to-end runs that set their own episodes and threads (qtl-demo, experiment sweeps).
+BUDGET = as_overrides(TINY_BUDGET)
+# The CLI's budget in end-to-end tests: one learned episode, one torch thread.
+CLI_TINY = ["episodes=1", *BUDGET, "threads=1"]
+# The CLI's budget with particle rollouts, searched by Adam (suited to particle objectives) instead of L-BFGS.
+PARTICLES_TINY = as_overrides({
+    **{key: value for key, value in TINY_BUDGET.items() if key != "optimizer.max_iter"},
+    "episodes": 1,
+    "threads": 1,
+    "optimizer": "adam",
+    "optimizer.steps": 3,
+    "propagation": "particles",
+    "propagation.num_particles": 20,
+})
+# In-process runs of the loop: two steps longer and two search runs, so that every line of the loop
+# runs (figures every episode, restarts), still in seconds.
+TINY = as_overrides({
+    **TINY_BUDGET,
+    "task.horizon": 8,
+    "task.success.last_steps": 3,
+    "task.policy_size": 5,
+    "optimizer.max_iter": 3,
+    "optimizer.restarts": 2,
+    "model.max_iter": 5,
+    "progress": False,
+    "figure_every": 1,
+    "threads": 1,
+})
+
+
+def train_config(*overrides: str) -> DictConfig:
+    """The composed ``train`` config with ``overrides``."""
+    register_configs()
+    with initialize_config_module(config_module="qtl.configs", version_base="1.3"):
+        return compose(config_name="train", overrides=list(overrides))
 
 
 def tiny_config(*overrides: str) -> DictConfig:
     """The composed ``train`` config with the TINY budget and ``overrides``."""
-    register_configs()
-    with initialize_config_module(config_module="qtl.configs", version_base="1.3"):
-        return compose(config_name="train", overrides=[*TINY, *overrides])
-
-
-# The CLI's budget in end-to-end tests: one learned episode of 6 steps, a handful of evaluations.
-CLI_TINY = [
-    "episodes=1",
-    "task.horizon=6",
-    "task.success.last_steps=2",
-    "task.policy_size=4",
-    "optimizer.max_iter=2",
-    "optimizer.restarts=1",
-    "model.restarts=1",
-    "model.max_iter=3",
-    "threads=1",
-]
+    return train_config(*TINY, *overrides)

@@ -8,27 +8,13 @@ import subprocess
 import sys
 from pathlib import Path
 
-# tests/test_cli.py's TINY budget, with Adam (suited to particle objectives) for L-BFGS.
-TINY_PARTICLES = [
-    "episodes=1",
-    "task.horizon=6",
-    "task.success.last_steps=2",
-    "task.policy_size=4",
-    "optimizer=adam",
-    "optimizer.steps=3",
-    "optimizer.restarts=1",
-    "model.restarts=1",
-    "model.max_iter=3",
-    "threads=1",
-    "propagation=particles",
-    "propagation.num_particles=20",
-]
+from tests.helpers import PARTICLES_TINY
 
 
 def test_cli_trains_with_particle_rollouts(tmp_path: Path):
     run_dir = tmp_path / "run"
     done = subprocess.run(
-        [sys.executable, "-m", "qtl", *TINY_PARTICLES, f"hydra.run.dir={run_dir}"],
+        [sys.executable, "-m", "qtl", *PARTICLES_TINY, f"hydra.run.dir={run_dir}"],
         cwd=tmp_path, capture_output=True, text=True, timeout=300,
     )
     assert done.returncode == 0, done.stderr

@@ -10,11 +10,9 @@ import pytest
 
 from qtl.errors import RunMismatch
 from qtl.launch import ensure_run
+from tests.helpers import BUDGET as TINY
 
 pytestmark = pytest.mark.e2e  # runs the real CLI in subprocesses: -m 'not e2e' skips it
-
-TINY = ["task.horizon=6", "task.success.last_steps=2", "task.policy_size=4", "optimizer.max_iter=2",
-        "optimizer.restarts=1", "model.restarts=1", "model.max_iter=3"]
 
 
 def test_demo_runs_source_transfer_and_baseline_then_summarises(tmp_path):

@@ -11,6 +11,7 @@ import pytest
 import yaml
 
 from qtl.report import ExperimentRecord, autopilot_return
+from tests.helpers import BUDGET
 from tests.report.fakes import write_run
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
@@ -19,8 +20,7 @@ import run_experiment
 pytestmark = pytest.mark.e2e  # runs the real CLI in subprocesses: -m 'not e2e' skips it
 
 ROOT = Path(__file__).resolve().parents[1]
-TINY = ["episodes=1", "task.horizon=6", "task.success.last_steps=2", "task.policy_size=4",
-        "optimizer.max_iter=2", "optimizer.restarts=1", "model.restarts=1", "model.max_iter=3"]
+TINY = ["episodes=1", *BUDGET]
 
 
 @pytest.fixture(scope="module")

@@ -8,10 +8,12 @@ from pathlib import Path
 
 import pytest
 import torch
+from omegaconf import OmegaConf
 
 from qtl.checkpoint import latest_checkpoint, load_checkpoint
 from qtl.errors import CheckpointError, TaskError
-from qtl.loop import resolve_device, run
+from qtl.loop import run
+from qtl.train import resume_config
 from tests.helpers import tiny_config
 
 
@@ -91,14 +93,6 @@ def test_unavailable_device_fails_before_any_work(tmp_path, monkeypatch, device,
     assert not any(tmp_path.iterdir())
 
 
-def test_resolve_device_accepts_cpu_and_present_gpus(monkeypatch):
-    assert resolve_device("cpu") == torch.device("cpu")
-    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
-    monkeypatch.setattr(torch.cuda, "device_count", lambda: 2)
-    assert resolve_device("cuda") == torch.device("cuda")
-    assert resolve_device("cuda:1") == torch.device("cuda", 1)
-
-
 @pytest.mark.parametrize(
     ("overrides", "message"),
     [
@@ -115,8 +109,25 @@ def test_bad_task_fails_before_any_work(tmp_path, overrides, message):
 
 
 def test_above_the_threshold_the_loop_uses_the_sparse_gp(tmp_path, caplog):
-    with caplog.at_level("INFO", logger="qtl.loop"):
+    with caplog.at_level("INFO", logger="qtl.models.fitting"):
         result = run(tiny_config("episodes=2", "model.sparse_above=10", "model.inducing=6"), tmp_path)
     assert "16 tuples > model.sparse_above=10: the sparse GP, 6 inducing inputs" in caplog.text
     assert "8 tuples >" not in caplog.text  # the first model (8 tuples) is exact
     assert len(result.returns) == 3 and all(math.isfinite(r) for r in result.predicted_returns[1:])
+
+
+def test_a_run_checkpointed_before_the_model_group_resumes_as_model_auto(tmp_path):
+    run(tiny_config("episodes=2"), tmp_path / "whole")
+    split = tmp_path / "split"
+    run(tiny_config("episodes=1"), split)
+    path = latest_checkpoint(split)
+    state = torch.load(path, weights_only=True)
+    cfg = OmegaConf.create(state["config"])
+    assert cfg.model._target_ == "qtl.models.AutoFit"
+    cfg.model = {k: v for k, v in cfg.model.items() if k != "_target_"}  # as runs of the earlier version stored it
+    state["config"] = OmegaConf.to_yaml(cfg)
+    torch.save(state, path)
+    resumed = resume_config(split, ["episodes=2"])
+    assert resumed.model._target_ == "qtl.models.AutoFit"
+    run(resumed, split, resume=True)
+    assert (split / "metrics.csv").read_text() == (tmp_path / "whole" / "metrics.csv").read_text()

@@ -1,7 +1,19 @@
 """Dynamics models: the GP of the transition function and its hyper-parameters θ."""
 
 from qtl.models.dynamics_gp import DynamicsGP, GPPosteriorCache, exact_gp_settings
+from qtl.models.fitting import AutoFit, ExactFit, ModelFit, SparseFit, log_evidence
 from qtl.models.hyperparameters import GPHyperparameters
 from qtl.models.sparse_gp import SparseDynamicsGP
 
-__all__ = ["DynamicsGP", "GPHyperparameters", "GPPosteriorCache", "SparseDynamicsGP", "exact_gp_settings"]
+__all__ = [
+    "AutoFit",
+    "DynamicsGP",
+    "ExactFit",
+    "GPHyperparameters",
+    "GPPosteriorCache",
+    "ModelFit",
+    "SparseDynamicsGP",
+    "SparseFit",
+    "exact_gp_settings",
+    "log_evidence",
+]

@@ -8,6 +8,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+from tests.helpers import BUDGET
+
 ROOT = Path(__file__).resolve().parents[2]
 SCRIPT = ROOT / "scripts" / "bench_sparse.py"
 
@@ -18,8 +20,7 @@ def test_switches_to_the_sparse_gp_above_the_threshold(tmp_path: Path) -> None:
     output = tmp_path / "sparse.json"
     done = subprocess.run(
         [sys.executable, str(SCRIPT), "--sizes", "40", "80", "--threads", "1", "--repeats", "1", "--overrides",
-         "model.sparse_above=50", "model.inducing=20", "model.max_iter=5", "task.horizon=6",
-         "task.success.last_steps=2",
+         "model.sparse_above=50", "model.inducing=20", *BUDGET,
          "--output", str(output), "--no-docs"],
         capture_output=True, text=True, timeout=240, env={**os.environ, "OMP_NUM_THREADS": "1"},
     )

@@ -1,0 +1,151 @@
+"""One ``build(cfg)``: the parts of Algorithm 1 made from the config and checked, for the loop and every script."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import torch
+from hydra.errors import InstantiationException
+from hydra.utils import instantiate
+from omegaconf import DictConfig, OmegaConf
+from torch import Tensor, nn
+
+from qtl.data import TransitionDataset, gp_training_pairs
+from qtl.episodes import Actor, policy_actor
+from qtl.features import AngleFeatures
+from qtl.gaussian import Gaussian
+from qtl.models import DynamicsGP, GPHyperparameters, ModelFit
+from qtl.policies import Policy, SquashedPolicy
+from qtl.policy_search import SearchResult
+from qtl.propagation import PropagatorFactory
+from qtl.rewards import ExpectedSaturatingReward
+from qtl.seeding import POLICY_INIT_STREAM, torch_generator
+from qtl.task import Task
+from qtl.transfer.plan import TransferPlan
+
+DTYPES = {"float64": torch.float64, "float32": torch.float32}
+# Draws from the start distribution from which the initial support points are taken.
+START_DRAWS = 1000
+
+
+class PolicySearch(Protocol):
+    """What ``instantiate(cfg.optimizer)`` gives: ψ improved in place to maximise the objective (lines 6-9)."""
+
+    def __call__(
+        self,
+        policy: nn.Module,
+        objective: Callable[[], Tensor],
+        *,
+        generator: torch.Generator | None = None,
+        tick: Callable[[], None] = ...,
+    ) -> SearchResult:
+        """Maximise ``objective()`` over ``policy.parameters()``; leave the best ψ in ``policy``."""
+        ...
+
+
+class PolicyFactory(Protocol):
+    """What ``instantiate(cfg.policy)`` gives (a ``_partial_`` config): the unsquashed initial policy."""
+
+    def __call__(
+        self,
+        input_dim: int,
+        output_dim: int,
+        *,
+        start_features: Tensor,
+        generator: torch.Generator | None = None,
+        dtype: torch.dtype = torch.float64,
+    ) -> Policy:
+        """π(ψ_0) on features `input_dim`, actions `output_dim`, around ``start_features`` `S x input_dim`."""
+        ...
+
+
+@dataclass(frozen=True)
+class Parts:
+    """What Algorithm 1 works with, made from the config: the task, its maths, and the swappable components."""
+
+    seed: int
+    dtype: torch.dtype
+    device: torch.device
+    task: Task
+    features: AngleFeatures
+    reward: ExpectedSaturatingReward
+    start: Gaussian  # N(μ_0, Σ_0) on ``device``
+    model: ModelFit  # the ``model`` group: which GP, and its evidence maximisation
+    make_propagator: PropagatorFactory  # the ``propagation`` group
+    search: PolicySearch  # the ``optimizer`` group
+    make_policy: PolicyFactory  # the ``policy`` group
+
+    def initial_policy(self) -> SquashedPolicy:
+        """π(ψ_0) as PILCO starts it (line 1): the configured policy around the start state, squashed, on the device."""
+        generator = torch_generator(self.seed, 0, POLICY_INIT_STREAM)
+        draws = self.task.start_distribution(self.dtype).sample(START_DRAWS, generator=generator)  # START_DRAWS x D
+        inner = self.make_policy(self.task.feature_dim, self.task.action_dim, start_features=self.features(draws),
+                                 generator=generator, dtype=self.dtype)
+        return SquashedPolicy(inner, torch.as_tensor(self.task.action_bound, dtype=self.dtype)).to(self.device)
+
+    def fit_dynamics(
+        self, data: TransitionDataset, generator: torch.Generator, start: GPHyperparameters | None = None
+    ) -> DynamicsGP:
+        """θ_p by evidence maximisation on all tuples (line 12), from ``start`` or PILCO's heuristic, on the device."""
+        inputs, targets = gp_training_pairs(data, self.features, self.dtype, self.device)
+        return self.model.fit(inputs, targets, start=start, generator=generator)
+
+    def actor(self, policy: Policy) -> Actor:
+        """u = π(φ(x)) on real observations (line 11)."""
+        return policy_actor(policy, self.features, self.dtype, self.device)
+
+
+def resolve_device(name: str) -> torch.device:
+    """The torch device of ``cfg.device`` ("cpu", "cuda" or "cuda:N"), checked to exist on this machine."""
+    try:
+        device = torch.device(name)
+    except RuntimeError as err:
+        raise ValueError(f"device={name!r} is not a torch device: choose cpu, cuda or cuda:N ({err})") from None
+    if device.type == "cpu":
+        return device
+    if device.type != "cuda":
+        raise ValueError(f"device={name!r}: qtl runs on cpu or cuda (cuda:N), not {device.type}")
+    if not torch.cuda.is_available():
+        raise ValueError(f"device={name!r}, but torch {torch.__version__} sees no CUDA GPU on this machine "
+                         "(torch.cuda.is_available() is False): use device=cpu, or a CUDA build of torch")
+    if device.index is not None and device.index >= torch.cuda.device_count():
+        raise ValueError(f"device={name!r}, but this machine has {torch.cuda.device_count()} CUDA device(s)")
+    return device
+
+
+def instantiate_checked(node: DictConfig) -> Any:  # whatever the node's `_target_` makes; Parts types it
+    """Hydra's instantiate, with a component's own ValueError (a bad setting) raised as it is."""
+    try:
+        return instantiate(node)
+    except InstantiationException as err:
+        if isinstance(err.__cause__, ValueError):
+            raise err.__cause__ from None
+        raise
+
+
+def build(cfg: DictConfig) -> Parts:
+    """The parts of ``cfg``, every one checked before any work: device, task (env, spaces), components."""
+    dtype = DTYPES[cfg.dtype]
+    device = resolve_device(cfg.device)
+    task = Task.from_config(OmegaConf.to_container(cfg.task, resolve=True))
+    return Parts(
+        seed=int(cfg.seed),
+        dtype=dtype,
+        device=device,
+        task=task,
+        features=AngleFeatures(task.state_dim, task.angle_dims),
+        reward=ExpectedSaturatingReward.from_spec(task.reward),
+        start=task.start_distribution(dtype).to(device=device),
+        model=instantiate_checked(cfg.model),
+        make_propagator=instantiate(cfg.propagation),
+        search=instantiate_checked(cfg.optimizer),
+        make_policy=instantiate(cfg.policy),
+    )
+
+
+def transfer_plan(cfg: DictConfig, parts: Parts) -> TransferPlan:
+    """The run's transfer plan (``cfg.transfer`` with the ``rule``): the source run loaded and checked."""
+    return TransferPlan(cfg.transfer, instantiate_checked(cfg.rule), parts.task, parts.features, parts.dtype,
+                        parts.device)

@@ -1,0 +1,141 @@
+"""The ``model`` config group: which dynamics GP the loop fits to its tuples, and how (Algorithm 1, line 12)."""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import Protocol
+
+import torch
+from torch import Tensor
+
+from qtl.models.dynamics_gp import DEFAULT_MAX_ITER, DEFAULT_RESTARTS, DynamicsGP
+from qtl.models.hyperparameters import GPHyperparameters
+from qtl.models.sparse_gp import DEFAULT_INDUCING, SparseDynamicsGP
+
+log = logging.getLogger(__name__)
+
+# `model=auto`: more tuples than this and the exact GP gives way to the sparse GP.
+DEFAULT_SPARSE_ABOVE = 1000
+
+
+class ModelFit(Protocol):
+    """What ``instantiate(cfg.model)`` gives: training pairs in, a fitted dynamics GP out."""
+
+    def fit(
+        self,
+        inputs: Tensor,
+        targets: Tensor,
+        *,
+        start: GPHyperparameters | None = None,
+        generator: torch.Generator | None = None,
+    ) -> DynamicsGP:
+        """θ_p by evidence maximisation on inputs `n x (F+U)` and targets Δ `n x E`, from ``start`` or the heuristic."""
+        ...
+
+
+def _check_fit_budget(restarts: int, max_iter: int) -> None:
+    """Restarts and L-BFGS iterations must be positive (checked when the config is instantiated)."""
+    if restarts < 1:
+        raise ValueError(f"model.restarts must be >= 1, got {restarts}")
+    if max_iter < 1:
+        raise ValueError(f"model.max_iter must be >= 1, got {max_iter}")
+
+
+def _check_inducing(inducing: int) -> None:
+    """The sparse GP needs at least one inducing input."""
+    if inducing < 1:
+        raise ValueError(f"model.inducing must be >= 1, got {inducing}")
+
+
+@dataclass(frozen=True)
+class ExactFit:
+    """The exact GP at every data size: L-BFGS from θ and ``restarts − 1`` perturbations, the best kept."""
+
+    restarts: int = DEFAULT_RESTARTS
+    max_iter: int = DEFAULT_MAX_ITER
+
+    def __post_init__(self) -> None:
+        _check_fit_budget(self.restarts, self.max_iter)
+
+    def fit(
+        self,
+        inputs: Tensor,
+        targets: Tensor,
+        *,
+        start: GPHyperparameters | None = None,
+        generator: torch.Generator | None = None,
+    ) -> DynamicsGP:
+        """The exact GP on inputs `n x (F+U)`, targets `n x E`, fitted from ``start`` (None: PILCO's heuristic)."""
+        model = DynamicsGP(inputs, targets, hyperparameters=start, dtype=inputs.dtype)
+        model.fit(restarts=self.restarts, max_iter=self.max_iter, generator=generator)
+        return model
+
+
+@dataclass(frozen=True)
+class SparseFit:
+    """The sparse GP (SGPR) at every data size, with ``inducing`` inducing inputs learned with θ."""
+
+    restarts: int = DEFAULT_RESTARTS
+    max_iter: int = DEFAULT_MAX_ITER
+    inducing: int = DEFAULT_INDUCING
+
+    def __post_init__(self) -> None:
+        _check_fit_budget(self.restarts, self.max_iter)
+        _check_inducing(self.inducing)
+
+    def fit(
+        self,
+        inputs: Tensor,
+        targets: Tensor,
+        *,
+        start: GPHyperparameters | None = None,
+        generator: torch.Generator | None = None,
+    ) -> DynamicsGP:
+        """The sparse GP on inputs `n x (F+U)`, targets `n x E`; ``generator`` draws Z, then the restarts."""
+        model = SparseDynamicsGP(inputs, targets, hyperparameters=start, num_inducing=self.inducing,
+                                 generator=generator, dtype=inputs.dtype)
+        model.fit(restarts=self.restarts, max_iter=self.max_iter, generator=generator)
+        return model
+
+
+@dataclass(frozen=True)
+class AutoFit:
+    """The exact GP up to ``sparse_above`` tuples, the sparse GP above (None: always exact)."""
+
+    restarts: int = DEFAULT_RESTARTS
+    max_iter: int = DEFAULT_MAX_ITER
+    sparse_above: int | None = DEFAULT_SPARSE_ABOVE
+    inducing: int = DEFAULT_INDUCING
+
+    def __post_init__(self) -> None:
+        _check_fit_budget(self.restarts, self.max_iter)
+        _check_inducing(self.inducing)
+        if self.sparse_above is not None and self.sparse_above < 0:
+            raise ValueError(f"model.sparse_above must be >= 0 or null, got {self.sparse_above}")
+
+    def fit(
+        self,
+        inputs: Tensor,
+        targets: Tensor,
+        *,
+        start: GPHyperparameters | None = None,
+        generator: torch.Generator | None = None,
+    ) -> DynamicsGP:
+        """:class:`ExactFit` or, above ``sparse_above`` tuples, :class:`SparseFit` on inputs `n x (F+U)`."""
+        if self.sparse_above is not None and len(inputs) > self.sparse_above:
+            log.info("%d tuples > model.sparse_above=%d: the sparse GP, %d inducing inputs", len(inputs),
+                     self.sparse_above, min(self.inducing, len(inputs)))
+            chosen: ModelFit = SparseFit(self.restarts, self.max_iter, self.inducing)
+        else:
+            chosen = ExactFit(self.restarts, self.max_iter)
+        return chosen.fit(inputs, targets, start=start, generator=generator)
+
+
+def log_evidence(model: DynamicsGP) -> float:
+    """Mean over the E outputs of the fitted model's log evidence per data point (priors included)."""
+    model.train()
+    with torch.no_grad():
+        value = float(model.log_evidence().mean())
+    model.eval()
+    return value

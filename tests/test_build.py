@@ -1,0 +1,115 @@
+"""``build(cfg)``: every part of Algorithm 1 made from the config and checked, for the loop and the scripts."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from hydra.utils import instantiate
+from omegaconf import OmegaConf
+
+from qtl.build import DTYPES, Parts, build, resolve_device, transfer_plan
+from qtl.config import typed_groups
+from qtl.data import TransitionDataset
+from qtl.episodes import random_actor, run_episode
+from qtl.models import AutoFit, DynamicsGP, ExactFit, SparseDynamicsGP, SparseFit
+from qtl.policies import SquashedPolicy
+from qtl.policy_search import AdamSearch, LBFGSSearch
+from qtl.propagation import MomentMatching, Particles
+from tests.helpers import TINY, tiny_config, train_config
+
+
+def test_parts_of_the_default_config():
+    parts = build(tiny_config())
+    assert parts.dtype == torch.float64 and parts.device == torch.device("cpu")
+    assert parts.task.state_dim == 4 and parts.task.horizon == 8
+    assert parts.features.output_dim == parts.task.feature_dim
+    assert parts.start.mean.dtype == torch.float64 and parts.start.mean.shape == (4,)
+    assert parts.model == AutoFit(restarts=1, max_iter=5)  # the TINY budget; sparse_above, inducing: defaults
+    assert isinstance(parts.search, LBFGSSearch) and parts.search.restarts == 2
+    policy = parts.initial_policy()
+    assert isinstance(policy, SquashedPolicy)
+    assert isinstance(parts.make_propagator(parts.fit_dynamics(_data(parts), torch.Generator()), policy, parts.reward,
+                                            angle_dims=parts.task.angle_dims), MomentMatching)
+
+
+def test_the_model_group_defaults_to_auto_with_the_fitters_own_defaults():
+    assert instantiate(tiny_config("model.restarts=3", "model.max_iter=100").model) == AutoFit()
+
+
+@pytest.mark.parametrize(("option", "kind"), [("auto", AutoFit), ("exact", ExactFit), ("sparse", SparseFit)])
+def test_each_model_option_makes_its_fitter(option, kind):
+    assert type(build(tiny_config(f"model={option}")).model) is kind
+
+
+def test_other_group_options_and_dtype():
+    tiny = [o for o in TINY if not o.startswith("optimizer.")]  # L-BFGS's budget: Adam has steps instead
+    parts = build(train_config(*tiny, "propagation=particles", "propagation.num_particles=10", "optimizer=adam",
+                               "optimizer.steps=2", "dtype=float32"))
+    assert parts.dtype == DTYPES["float32"] == torch.float32 and parts.start.mean.dtype == torch.float32
+    assert isinstance(parts.search, AdamSearch)
+    policy = parts.initial_policy()
+    assert all(p.dtype == torch.float32 for p in policy.parameters())
+    model = parts.fit_dynamics(_data(parts), torch.Generator().manual_seed(0))
+    assert isinstance(parts.make_propagator(model, policy, parts.reward, angle_dims=parts.task.angle_dims), Particles)
+
+
+def test_initial_policy_is_the_seeds_own():
+    a, b = build(tiny_config("seed=2")).initial_policy(), build(tiny_config("seed=2")).initial_policy()
+    c = build(tiny_config("seed=3")).initial_policy()
+    for name, value in a.state_dict().items():
+        torch.testing.assert_close(value, b.state_dict()[name], rtol=0, atol=0)
+    assert any(not torch.equal(pa, pc) for pa, pc in zip(a.state_dict().values(), c.state_dict().values(), strict=True))
+
+
+def test_fit_dynamics_follows_the_model_option():
+    parts = build(tiny_config("model.sparse_above=10", "model.inducing=6"))
+    data = _data(parts, episodes=2)  # 16 tuples
+    model = parts.fit_dynamics(data, torch.Generator().manual_seed(0))
+    assert isinstance(model, SparseDynamicsGP) and model.inducing_points.shape[0] == 6
+    exact = build(tiny_config("model=exact")).fit_dynamics(data, torch.Generator().manual_seed(0))
+    assert type(exact) is DynamicsGP and exact.train_x.shape == (16, parts.task.gp_input_dim)
+
+
+@pytest.mark.parametrize(("override", "message"), [
+    ("model.restarts=0", "model.restarts must be >= 1"),
+    ("model.inducing=0", "model.inducing must be >= 1"),
+    ("optimizer.restarts=0", "restarts must be >= 1"),
+])
+def test_a_bad_component_setting_fails_in_build_with_its_own_message(override, message):
+    with pytest.raises(ValueError, match=message):
+        build(tiny_config(override))
+
+
+def test_transfer_plan_without_a_source_is_pilcos():
+    parts = build(tiny_config())
+    plan = transfer_plan(tiny_config(), parts)
+    assert plan.source is None and not plan.transfer_policy
+
+
+def test_a_config_stored_before_the_model_group_reads_as_model_auto():
+    legacy = OmegaConf.to_container(tiny_config(), resolve=True)
+    legacy["model"] = {"restarts": 1, "max_iter": 5, "sparse_above": 10, "inducing": 6}  # no `_target_`
+    cfg = typed_groups(OmegaConf.create(legacy))
+    assert cfg.model._target_ == "qtl.models.AutoFit"
+    assert build(cfg).model == AutoFit(restarts=1, max_iter=5, sparse_above=10, inducing=6)
+
+
+def test_resolve_device_accepts_cpu_and_present_gpus(monkeypatch):
+    assert resolve_device("cpu") == torch.device("cpu")
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 2)
+    assert resolve_device("cuda") == torch.device("cuda")
+    assert resolve_device("cuda:1") == torch.device("cuda", 1)
+
+
+def _data(parts: Parts, episodes: int = 1) -> TransitionDataset:
+    """Random-action episodes of the task."""
+    data = TransitionDataset(parts.task.state_dim, parts.task.action_dim)
+    env = parts.task.make_env()
+    rng = np.random.default_rng(0)
+    for k in range(episodes):
+        real = run_episode(env, parts.task, random_actor(parts.task, rng), k)
+        data.add_episode(real.states, real.actions)
+    env.close()
+    return data
