@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+
 import torch
 from torch import Tensor
 from torch.autograd.function import FunctionCtx, once_differentiable
@@ -11,10 +13,22 @@ from qtl.kernels.native.library import ExpSumLibrary
 
 def item_offsets(t: Tensor, batch: torch.Size) -> Tensor:
     """Element offset of each batch item's matrix in ``t`` `*batch x r x c` (a view), `prod(batch)` int64."""
+    return _offsets(tuple(batch), t.stride()[: len(batch)])
+
+
+@functools.lru_cache(maxsize=256)
+def _offsets(batch: tuple[int, ...], strides: tuple[int, ...]) -> Tensor:
+    """Σ_d index_d · stride_d for every index of ``batch``, flattened (cached: a rollout repeats its shapes)."""
     offsets = torch.zeros((), dtype=torch.int64)
-    for size, stride in zip(batch, t.stride()[: len(batch)], strict=True):
+    for size, stride in zip(batch, strides, strict=True):
         offsets = offsets[..., None] + stride * torch.arange(size, dtype=torch.int64)
     return offsets.reshape(-1)
+
+
+@functools.lru_cache(maxsize=256)
+def _visit_order_for(batch: tuple[int, ...], w_strides: tuple[int, ...]) -> Tensor:
+    """The items sorted stably by their W offset: those that share a broadcast W come one after another."""
+    return torch.argsort(_offsets(batch, w_strides), stable=True)
 
 
 class NativeWeightedExpSum(torch.autograd.Function):
@@ -28,10 +42,10 @@ class NativeWeightedExpSum(torch.autograd.Function):
     @staticmethod
     def forward(ctx: FunctionCtx, a: Tensor, b: Tensor, w: Tensor, library: ExpSumLibrary) -> Tensor:  # type: ignore[override]
         batch = a.shape[:-2]
-        w_offsets = item_offsets(w, batch)
+        w_strides = w.stride()[: len(batch)]
         # Items that share a broadcast W run one after another, while it is in cache.
-        order = torch.argsort(w_offsets, stable=True)
-        offsets = (item_offsets(a, batch), item_offsets(b, batch), w_offsets, order)
+        order = _visit_order_for(tuple(batch), w_strides)
+        offsets = (item_offsets(a, batch), item_offsets(b, batch), item_offsets(w, batch), order)
         ctx.save_for_backward(a, b, w)
         ctx.offsets, ctx.library = offsets, library
         return library.forward(a, b, w, offsets).view(batch)

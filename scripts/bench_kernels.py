@@ -1,0 +1,173 @@
+"""Benchmark the fused exp sum Σ_ij W_ij exp((A Bᵀ)_ij): the torch path against the native kernel, in one run.
+
+At the sizes moment matching uses (P = 10 output pairs, K = 8, n = 250, 500, 1000; alone and with
+R = 3 restarts batched over a broadcast W `P x n x n`): the forward pass, and forward plus the
+gradients for A and B (W fixed, as for the GP dynamics). Then one moment-matching rollout plus its
+policy gradient at n = 250 (E = 4, GP input 6-D; `bench_rollout.py`'s case) under each backend.
+Medians of the repeats after one warm-up, 2 torch threads. Writes `docs/bench_kernels.json` and
+its section of `docs/benchmarks.md`.
+
+    .venv/bin/python scripts/bench_kernels.py [--repeats 7]
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import bench_rollout
+import benchlib
+
+from qtl.kernels import backend, weighted_exp_sum
+from qtl.kernels.native import build as native_build
+
+PAIRS = 10  # E(E+1)/2 for E = 4 outputs
+FEATURES = 8  # K = D + 2 for D = 6 GP inputs
+SIZES = (250, 500, 1000)
+RESTARTS = (1, 3)
+ROLLOUT_N = 250
+THREADS = 2
+BACKENDS = ("torch", "native")
+MACHINE = "2-core dev VM"
+OUTPUT = benchlib.ROOT / "docs" / "bench_kernels.json"
+
+
+def problem(n: int, restarts: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """A, B `[R x] P x n x K` (entries ~ N(0, 0.3²)) and a signed W `P x n x n`, float64."""
+    gen = torch.Generator().manual_seed(n + restarts)
+    batch = (PAIRS,) if restarts == 1 else (restarts, PAIRS)
+    a = 0.3 * torch.randn(*batch, n, FEATURES, generator=gen, dtype=torch.float64)
+    b = 0.3 * torch.randn(*batch, n, FEATURES, generator=gen, dtype=torch.float64)
+    w = torch.randn(PAIRS, n, n, generator=gen, dtype=torch.float64)
+    return a, b, w
+
+
+def median_time(fn: Callable[[], object], repeats: int) -> float:
+    """Median wall time of ``fn`` over ``repeats`` calls after one warm-up call, seconds."""
+    fn()
+    times = []
+    for _ in range(repeats):
+        tic = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - tic)
+    return statistics.median(times)
+
+
+def bench_exp_sum(n: int, restarts: int, repeats: int) -> dict:
+    """Forward and forward + backward times of both backends on one problem."""
+    a, b, w = problem(n, restarts)
+    a_req, b_req = a.clone().requires_grad_(), b.clone().requires_grad_()
+
+    def forward() -> torch.Tensor:
+        return weighted_exp_sum(a, b, w)
+
+    def forward_backward() -> tuple[torch.Tensor, ...]:
+        return torch.autograd.grad(weighted_exp_sum(a_req, b_req, w).sum(), (a_req, b_req))
+
+    row: dict = {"n": n, "restarts": restarts, "pairs": PAIRS, "k": FEATURES}
+    for name in BACKENDS:
+        with backend(name):
+            row[f"{name}_forward_ms"] = 1e3 * median_time(forward, repeats)
+            row[f"{name}_forward_backward_ms"] = 1e3 * median_time(forward_backward, repeats)
+            row[f"{name}_value"] = forward()
+    row["max_rel_diff"] = float(((row["native_value"] - row["torch_value"]).abs() / row["torch_value"].abs()).max())
+    del row["native_value"], row["torch_value"]
+    for what in ("forward", "forward_backward"):
+        row[f"{what}_speedup"] = row[f"torch_{what}_ms"] / row[f"native_{what}_ms"]
+    return row
+
+
+def bench_rollout_gradient(repeats: int) -> dict:
+    """One moment-matching rollout (H = 50) plus the policy gradient at n = ROLLOUT_N, both backends."""
+    propagator, start = bench_rollout.make_case(ROLLOUT_N, torch.float64)
+    row: dict = {"n": ROLLOUT_N, "horizon": bench_rollout.HORIZON}
+    for name in BACKENDS:
+        with backend(name):
+            row[f"{name}_s"] = median_time(lambda: bench_rollout.rollout_and_gradient(propagator, start), repeats)
+            row[f"{name}_value"] = bench_rollout.rollout_and_gradient(propagator, start)
+    row["speedup"] = row["torch_s"] / row["native_s"]
+    return row
+
+
+def markdown(info: dict, rows: list[dict], rollout: dict) -> str:
+    """The section of docs/benchmarks.md."""
+    lines = [
+        "## Fused exp sum: torch path vs native kernel",
+        "",
+        f"Σ_ij W_ij exp((A Bᵀ)_ij) at moment matching's sizes: P = {PAIRS} output pairs, K = {FEATURES}, "
+        "A and B `[R x] P x n x K`, W `P x n x n` (broadcast over R restarts), float64; "
+        "forward, and forward plus the gradients for A and B (W fixed, as for the GP dynamics). "
+        f"Median of {info['repeats']} after one warm-up, {THREADS} torch threads, both backends in one run. "
+        "Speed-up = torch time / native time.",
+        "",
+        f"Command: `{info['command']}`  ",
+        f"Date: {info['date']}  ",
+        f"Machine: {info['machine']} ({info['cpu']}), torch {info['torch']}, commit {info['commit']}  ",
+        f"Results: `{info['output']}`",
+        "",
+        "| n | R | forward torch (ms) | forward native (ms) | speed-up | fwd + bwd torch (ms) "
+        "| fwd + bwd native (ms) | speed-up | max rel. diff |",
+        "| ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['n']} | {r['restarts']} | {r['torch_forward_ms']:.2f} | {r['native_forward_ms']:.2f} "
+            f"| {r['forward_speedup']:.2f}× | {r['torch_forward_backward_ms']:.2f} "
+            f"| {r['native_forward_backward_ms']:.2f} | {r['forward_backward_speedup']:.2f}× "
+            f"| {r['max_rel_diff']:.1e} |"
+        )
+    lines += [
+        "",
+        f"One moment-matching rollout (H = {rollout['horizon']}) plus the policy gradient at n = {rollout['n']} "
+        "(E = 4, GP input 6-D, `bench_rollout.py`'s case): "
+        f"torch {rollout['torch_s']:.3f} s, native {rollout['native_s']:.3f} s ({rollout['speedup']:.2f}×); "
+        f"V = {rollout['torch_value']:.12f} (torch) and {rollout['native_value']:.12f} (native).",
+    ]
+    return "\n".join(lines)
+
+
+def main() -> None:
+    """Build (or find) the native kernel, time both backends, write JSON and the markdown section."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--repeats", type=int, default=7)
+    args = parser.parse_args()
+    torch.set_num_threads(THREADS)
+    native_build.build()
+    rows = []
+    for n in SIZES:
+        for restarts in RESTARTS:
+            rows.append(bench_exp_sum(n, restarts, args.repeats))
+            print(rows[-1], file=sys.stderr)
+    rollout = bench_rollout_gradient(max(3, args.repeats // 2))
+    print(rollout, file=sys.stderr)
+    commit = subprocess.run(
+        ["git", "rev-parse", "--short", "HEAD"], cwd=benchlib.ROOT, capture_output=True, text=True, check=False
+    ).stdout.strip()
+    machine = benchlib.machine()
+    info = {
+        "date": benchlib.today(),
+        "command": benchlib.command_line(),
+        "machine": MACHINE,
+        "cpu": machine["cpu"],
+        "torch": machine["torch"],
+        "threads": THREADS,
+        "repeats": args.repeats,
+        "commit": commit,
+        "output": benchlib.display_path(OUTPUT),
+    }
+    benchlib.write_results(OUTPUT, {**info, "rollout": rollout}, rows)
+    section = markdown(info, rows, rollout)
+    benchlib.write_section("bench_kernels", section)
+    print(section)
+
+
+if __name__ == "__main__":
+    main()
