@@ -7,12 +7,13 @@ policy gradient at n = 250 (E = 4, GP input 6-D; `bench_rollout.py`'s case) unde
 Medians of the repeats after one warm-up, 2 torch threads. Writes `docs/bench_kernels.json` and
 its section of `docs/benchmarks.md`.
 
-    .venv/bin/python scripts/bench_kernels.py [--repeats 7]
+    .venv/bin/python scripts/bench_kernels.py [--repeats 5]
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import statistics
 import subprocess
 import sys
@@ -110,7 +111,9 @@ def markdown(info: dict, rows: list[dict], rollout: dict) -> str:
         "",
         f"Command: `{info['command']}`  ",
         f"Date: {info['date']}  ",
-        f"Machine: {info['machine']} ({info['cpu']}), torch {info['torch']}, commit {info['commit']}  ",
+        f"Machine: {info['machine']} ({info['cpu']}), torch {info['torch']}, commit {info['commit']}; "
+        f"1-min load average {info['load_average_1min'][0]} before, {info['load_average_1min'][1]} after "
+        "(other work on the machine slows the torch path's threads most)  ",
         f"Results: `{info['output']}`",
         "",
         "| n | R | forward torch (ms) | forward native (ms) | speed-up | fwd + bwd torch (ms) "
@@ -137,10 +140,11 @@ def markdown(info: dict, rows: list[dict], rollout: dict) -> str:
 def main() -> None:
     """Build (or find) the native kernel, time both backends, write JSON and the markdown section."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--repeats", type=int, default=7)
+    parser.add_argument("--repeats", type=int, default=5)
     args = parser.parse_args()
     torch.set_num_threads(THREADS)
     native_build.build()
+    load_before = os.getloadavg()[0]
     rows = []
     for n in SIZES:
         for restarts in RESTARTS:
@@ -161,6 +165,7 @@ def main() -> None:
         "threads": THREADS,
         "repeats": args.repeats,
         "commit": commit,
+        "load_average_1min": [round(load_before, 2), round(os.getloadavg()[0], 2)],
         "output": benchlib.display_path(OUTPUT),
     }
     benchlib.write_results(OUTPUT, {**info, "rollout": rollout}, rows)
