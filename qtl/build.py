@@ -16,6 +16,7 @@ from qtl.data import TransitionDataset, gp_training_pairs
 from qtl.episodes import Actor, policy_actor
 from qtl.features import AngleFeatures
 from qtl.gaussian import Gaussian
+from qtl.kernels import use_backend
 from qtl.models import DynamicsGP, GPHyperparameters, ModelFit
 from qtl.policies import Policy, SquashedPolicy
 from qtl.policy_search import SearchResult
@@ -76,6 +77,7 @@ class Parts:
     make_propagator: PropagatorFactory  # the ``propagation`` group
     search: PolicySearch  # the ``optimizer`` group
     make_policy: PolicyFactory  # the ``policy`` group
+    kernel_backend: str  # the exp sums' engine in effect (``kernels.backend``, resolved)
 
     def initial_policy(self) -> SquashedPolicy:
         """π(ψ_0) as PILCO starts it (line 1): the configured policy around the start state, squashed, on the device."""
@@ -130,6 +132,7 @@ def build(cfg: DictConfig) -> Parts:
     dtype = DTYPES[cfg.dtype]
     device = resolve_device(cfg.device)
     task = Task.from_config(OmegaConf.to_container(cfg.task, resolve=True))
+    kernel_backend = use_backend(cfg.kernels.backend)  # native requested but not built: a UserError here
     return Parts(
         seed=int(cfg.seed),
         dtype=dtype,
@@ -142,6 +145,7 @@ def build(cfg: DictConfig) -> Parts:
         make_propagator=instantiate(cfg.propagation),
         search=instantiate_checked(cfg.optimizer),
         make_policy=instantiate(cfg.policy),
+        kernel_backend=kernel_backend,
     )
 
 

@@ -344,6 +344,17 @@ class TransferConfig:
 
 
 @dataclass
+class KernelsConfig:
+    """How the shared kernel maths runs (``qtl.kernels``)."""
+
+    backend: str = field(
+        default="auto",
+        metadata=doc("auto | native | torch: the fused exp sums of moment matching (native: C, CPU float64; "
+                     "auto: native when built, else torch)"),
+    )
+
+
+@dataclass
 class SweepConfig:
     """Where an experiment preset (``configs/experiment/``) puts its source and target runs."""
 
@@ -384,6 +395,7 @@ class TrainConfig:
         default_factory=TransferConfig, metadata=doc("transfer from a source run (Section 4)"),
     )
     sweep: SweepConfig = field(default_factory=SweepConfig, metadata=doc("where an experiment preset puts its runs"))
+    kernels: KernelsConfig = field(default_factory=KernelsConfig, metadata=doc("the kernel maths' engine"))
 
 
 # -- checks Hydra cannot make ------------------------------------------------------------------------

@@ -33,7 +33,8 @@ from qtl.task import env_settings
 log = logging.getLogger(__name__)
 
 # What a resumed run may change of the interrupted run's configuration.
-RESUME_OVERRIDABLE = frozenset({"episodes", "progress", "figure_every", "threads", "device", "resume"})
+# Top-level keys: ``kernels`` covers ``kernels.backend`` (the engine, not the maths: round-off only).
+RESUME_OVERRIDABLE = frozenset({"episodes", "progress", "figure_every", "threads", "device", "kernels", "resume"})
 HYDRA_DIR = ".hydra"  # the run's record of its configuration, as Hydra lays it out
 FULL_ERROR = "HYDRA_FULL_ERROR"  # Hydra's switch for full tracebacks; qtl-train honours it too
 
@@ -50,7 +51,7 @@ def resume_config(run_dir: Path, overrides: list[str]) -> DictConfig:
     changes = []
     for override in overrides:
         key = override.lstrip("+~").partition("=")[0]
-        if key not in RESUME_OVERRIDABLE:
+        if key.split(".")[0] not in RESUME_OVERRIDABLE:
             raise CheckpointError(
                 f"cannot change {key!r} when resuming {str(run_dir)!r}: only {sorted(RESUME_OVERRIDABLE - {'resume'})} "
                 "may differ from the interrupted run"
@@ -75,7 +76,8 @@ def auto_resume(run_dir: Path, cfg: DictConfig) -> DictConfig:
     """``resume=auto`` (sweeps): continue the run in ``run_dir`` if it holds one of this config, else start it.
 
     A run of another configuration in ``run_dir`` is an error; only the keys a resume may change
-    (``episodes``, ``progress``, ``figure_every``, ``threads``, ``device``) may differ, and take ``cfg``'s values.
+    (``episodes``, ``progress``, ``figure_every``, ``threads``, ``device``, ``kernels``) may differ, and take
+    ``cfg``'s values.
     """
     try:
         checkpoint = load_checkpoint(latest_checkpoint(run_dir))

@@ -113,3 +113,22 @@ def _data(parts: Parts, episodes: int = 1) -> TransitionDataset:
         data.add_episode(real.states, real.actions)
     env.close()
     return data
+
+
+def test_kernels_backend_is_chosen_in_build_and_a_bad_one_is_refused():
+    from qtl.errors import UserError
+    from qtl.kernels import active_backend, use_backend
+    from qtl.kernels.native import load_exp_sum
+
+    try:
+        load_exp_sum()
+        expected = "native"
+    except ImportError:
+        expected = "torch"
+    try:
+        assert build(tiny_config("kernels.backend=torch")).kernel_backend == "torch" == active_backend()
+        assert build(tiny_config()).kernel_backend == expected  # the default: auto
+        with pytest.raises(UserError, match=r"kernels\.backend must be one of"):
+            build(tiny_config("kernels.backend=cuda"))
+    finally:
+        use_backend("torch")

@@ -18,8 +18,10 @@ from tests.helpers import tiny_config
 
 def test_resume_may_change_how_a_run_runs_but_not_what_it_learns(tmp_path):
     run(tiny_config("episodes=0"), tmp_path)
-    cfg = resume_config(tmp_path, [f"resume={tmp_path}", "episodes=3", "threads=2", "device=cuda:0"])
-    assert (cfg.episodes, cfg.threads, cfg.device, cfg.resume) == (3, 2, "cuda:0", str(tmp_path))
+    cfg = resume_config(tmp_path, [f"resume={tmp_path}", "episodes=3", "threads=2", "device=cuda:0",
+                                   "kernels.backend=torch"])
+    assert (cfg.episodes, cfg.threads, cfg.device, cfg.kernels.backend, cfg.resume) == (
+        3, 2, "cuda:0", "torch", str(tmp_path))
     with pytest.raises(CheckpointError, match="cannot change 'seed'"):
         resume_config(tmp_path, ["seed=4"])
     with pytest.raises(CheckpointError, match="already holds a run's checkpoints"):
