@@ -8,7 +8,11 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from tests.helpers import PARTICLES_TINY
+
+pytestmark = pytest.mark.e2e  # runs the real CLI or scripts in subprocesses
 
 
 def test_cli_trains_with_particle_rollouts(tmp_path: Path):

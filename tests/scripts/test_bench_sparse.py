@@ -8,7 +8,11 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from tests.helpers import BUDGET
+
+pytestmark = pytest.mark.e2e  # runs the real CLI or scripts in subprocesses
 
 ROOT = Path(__file__).resolve().parents[2]
 SCRIPT = ROOT / "scripts" / "bench_sparse.py"

@@ -16,6 +16,8 @@ from qtl.transfer.compliance import task_compliance
 from qtl.transfer.source import SourceRun
 from tests.helpers import tiny_config
 
+pytestmark = pytest.mark.e2e  # runs the real CLI or scripts in subprocesses
+
 ROOT = Path(__file__).resolve().parents[2]
 ENV = {**os.environ, "OMP_NUM_THREADS": "1"}
 
