@@ -89,3 +89,12 @@ def _first_sentence(err: Exception) -> str:
     """The first sentence of an error's message, on one line (torch's load errors run over many lines)."""
     lines = str(err).strip().splitlines()
     return lines[0].split(". ")[0].rstrip(".") if lines else "no message"
+
+
+def refuse_existing_run(run_dir: str | os.PathLike) -> None:
+    """A fresh run must not start over a run directory that holds checkpoints (checked before anything is written)."""
+    if any((Path(run_dir) / CHECKPOINT_DIR).glob("episode_*.pt")):
+        raise CheckpointError(
+            f"{str(run_dir)!r} already holds a run's checkpoints: resume={run_dir} continues it (resume=auto in "
+            "a sweep), or choose another hydra.run.dir; nothing was overwritten"
+        )

@@ -19,12 +19,11 @@ from tqdm.auto import tqdm
 from tqdm.contrib.logging import logging_redirect_tqdm
 
 from qtl.build import build, transfer_plan
-from qtl.checkpoint import CHECKPOINT_DIR, latest_checkpoint, load_checkpoint, save_checkpoint, set_rng_state
+from qtl.checkpoint import latest_checkpoint, load_checkpoint, refuse_existing_run, save_checkpoint, set_rng_state
 from qtl.data import TransitionDataset
 from qtl.episodes import one_step_smse, prediction_figure, random_actor, run_episode
-from qtl.errors import CheckpointError
 from qtl.models import GPHyperparameters, log_evidence
-from qtl.recorder import BASE_COLUMNS, RunRecorder, theta_columns, theta_row
+from qtl.recorder import BASE_COLUMNS, THETA_P_PREFIX, RunRecorder, theta_columns, theta_row
 from qtl.seeding import (
     ACTION_STREAM,
     ENV_STREAM,
@@ -79,7 +78,7 @@ def run(cfg: DictConfig, output_dir: Path, *, resume: bool = False) -> RunResult
         set_rng_state(checkpoint["rng"])
         log.info("resuming %s after episode %d", output_dir, checkpoint["episode"])
     columns = (BASE_COLUMNS + theta_columns(task.state_dim, task.gp_input_dim)
-               + theta_columns(task.state_dim, task.gp_input_dim, "theta_p"))
+               + theta_columns(task.state_dim, task.gp_input_dim, THETA_P_PREFIX))
     log.info("%s", plan.describe())
     recorder = RunRecorder(output_dir, columns, rows, timings)
     env = task.make_env()
@@ -134,7 +133,7 @@ def run(cfg: DictConfig, output_dir: Path, *, resume: bool = False) -> RunResult
                         compliance=compliance,
                         fallback=int(plan.fallen_back),
                         **theta_row(theta),
-                        **theta_row(theta_p, "theta_p"),
+                        **theta_row(theta_p, THETA_P_PREFIX),
                     )
                     learned = episode - cfg.random_episodes
                     if cfg.figure_every > 0 and learned % cfg.figure_every == 0:
@@ -181,11 +180,7 @@ def _resume_point(output_dir: Path, resume: bool) -> dict[str, Any] | None:
     """The last checkpoint to continue from, or None for a fresh run (refused where a run already lies)."""
     if resume:
         return load_checkpoint(latest_checkpoint(output_dir))
-    if any((output_dir / CHECKPOINT_DIR).glob("episode_*.pt")):
-        raise CheckpointError(
-            f"{str(output_dir)!r} already holds a run's checkpoints: resume={output_dir} continues it (resume=auto in "
-            "a sweep), or choose another hydra.run.dir; nothing was overwritten"
-        )
+    refuse_existing_run(output_dir)
     return None
 
 

@@ -23,7 +23,7 @@ from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from qtl.build import DTYPES
-from qtl.checkpoint import CHECKPOINT_DIR, latest_checkpoint, load_checkpoint
+from qtl.checkpoint import latest_checkpoint, load_checkpoint, refuse_existing_run
 from qtl.config import TrainConfig, check_budget, check_group_keys, register_configs, show_progress, typed_groups
 from qtl.errors import CheckpointError, UserError
 from qtl.loop import RunResult, run
@@ -93,15 +93,6 @@ def auto_resume(run_dir: Path, cfg: DictConfig) -> DictConfig:
         stored[key] = cfg[key]
     stored.resume = str(run_dir)
     return stored
-
-
-def refuse_existing_run(output_dir: Path) -> None:
-    """A fresh run must not start over a run directory that holds checkpoints (checked before anything is written)."""
-    if any((output_dir / CHECKPOINT_DIR).glob("episode_*.pt")):
-        raise CheckpointError(
-            f"{str(output_dir)!r} already holds a run's checkpoints: resume={output_dir} continues it (resume=auto in "
-            "a sweep), or choose another hydra.run.dir; nothing was overwritten"
-        )
 
 
 def record_config(cfg: DictConfig, output_dir: Path) -> None:
