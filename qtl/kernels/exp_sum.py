@@ -170,7 +170,7 @@ def _native_weighted_exp_sum(a: Tensor, b: Tensor, w: Tensor, library: native.Ex
     a = a.expand(*batch, *a.shape[-2:])
     b = b.expand(*batch, *b.shape[-2:])
     w = w.expand(*batch, *w.shape[-2:])
-    return native.NativeWeightedExpSum.apply(a, b, w, library)
+    return native.NativeWeightedExpSum.apply(a, b, w, library, torch.is_grad_enabled())
 
 
 def weighted_exp_sum(a: Tensor, b: Tensor, w: Tensor, block_rows: int | None = None) -> Tensor:

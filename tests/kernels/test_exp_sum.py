@@ -31,6 +31,9 @@ SHAPES = [
     ((2, 1), (2, 3), (1, 3), 5, 600, 4),
 ]
 SMALL = ((2, 3), (2, 3), (3,), 5, 6)  # batches of A, B, W and n, m for the K sweep
+# Which of A, B, W need a gradient: every non-empty combination. Without W the native forward also
+# forms the A/B gradients (G_A, G_B); with W its backward recomputes exp(A Bᵀ).
+WANTS = [want for want in itertools.product((True, False), repeat=3) if any(want)]
 
 
 @pytest.fixture(scope="module")
@@ -62,11 +65,17 @@ def operands(shape: tuple, seed: int, requires_grad: bool = False) -> tuple[Tens
 
 
 def with_grads(a: Tensor, b: Tensor, w: Tensor, name: str) -> tuple[Tensor, ...]:
-    """The sums under backend ``name`` and the gradients of a weighted total w.r.t. A, B and W."""
+    """The sums under backend ``name`` and the gradients of a weighted total w.r.t. those of A, B, W that need one."""
     with exp_sum.backend(name):
         value = weighted_exp_sum(a, b, w)
     probe = torch.linspace(0.5, 1.5, value.numel(), dtype=DTYPE).view(value.shape)
-    return (value.detach(), *torch.autograd.grad((value * probe).sum(), (a, b, w)))
+    wanted = tuple(t for t in (a, b, w) if t.requires_grad)
+    return (value.detach(), *torch.autograd.grad((value * probe).sum(), wanted))
+
+
+def needing(want: tuple[bool, bool, bool], *tensors: Tensor) -> tuple[Tensor, ...]:
+    """Detached copies of ``tensors`` of which those flagged in ``want`` need a gradient."""
+    return tuple(t.detach().requires_grad_(flag) for t, flag in zip(tensors, want, strict=True))
 
 
 def assert_relative(got: Tensor, want: Tensor, scale: Tensor, what: str) -> None:
@@ -95,18 +104,21 @@ def test_torch_path_value_and_gradcheck():
 
 
 @pytest.mark.parametrize(("shape", "seed"), [(s, i) for i, s in enumerate(SHAPES)])
-def test_native_equals_torch(built, shape, seed):
-    a, b, w = operands(shape, seed, requires_grad=True)
+@pytest.mark.parametrize("want", WANTS, ids=lambda want: "".join(n for n, f in zip("abw", want, strict=True) if f))
+def test_native_equals_torch(built, shape, seed, want):
+    a, b, w = needing(want, *operands(shape, seed))
     native = with_grads(a, b, w, "native")
     reference = with_grads(a, b, w, "torch")
     # Scales: the same sums and gradients with |W|, so that cancellation in a signed W is not
     # mistaken for an error (the 1e-12 is relative to what the result is a sum of).
-    abs_w = w.detach().abs().requires_grad_()
-    scale = with_grads(a, b, abs_w, "torch")
-    grad_w_scale = reference[3].abs().amax()
-    scales = (scale[0], scale[1].abs().amax(), scale[2].abs().amax(), grad_w_scale)
-    for got, want, mag, what in zip(native, reference, scales, ("value", "A", "B", "W"), strict=True):
-        assert_relative(got, want, mag, f"{shape} {what}")
+    a_all, b_all, w_all = needing((True, True, True), a, b, w)
+    full = with_grads(a_all, b_all, w_all, "torch")
+    scale = with_grads(a_all, b_all, w_all.detach().abs().requires_grad_(), "torch")
+    scales = (scale[0], scale[1].abs().amax(), scale[2].abs().amax(), full[3].abs().amax())
+    kept = [(mag, what) for mag, what, flag in zip(scales[1:], "ABW", want, strict=True) if flag]
+    assert len(native) == len(reference) == 1 + len(kept)
+    for got, want_, (mag, what) in zip(native, reference, [(scales[0], "value"), *kept], strict=True):
+        assert_relative(got, want_, mag, f"{shape} {what}")
 
 
 @pytest.mark.parametrize("k", range(1, 10))
@@ -121,25 +133,76 @@ def test_native_gradcheck(native):
     for shape in [((2, 3), (2, 3), (3,), 5, 6, 4), ((1,), (2,), (), 3, 4, 2), ((), (), (), 259, 3, 1)]:
         a, b, w = operands(shape, 3, requires_grad=True)
         assert torch.autograd.gradcheck(weighted_exp_sum, (a, b, w)), shape
-    # Only some operands need gradients (the GP dynamics: W fixed).
-    a, b, w = operands(((2, 3), (2, 3), (3,), 5, 6, 4), 4)
-    assert torch.autograd.gradcheck(weighted_exp_sum, (a.requires_grad_(), b, w))
-    assert torch.autograd.gradcheck(weighted_exp_sum, (a, b.requires_grad_(), w))
+    # Only some operands need gradients. W fixed (the GP dynamics): the forward forms G_A and G_B,
+    # across the row split (n = 259: two partial G_B added) and the column chunk (m = 513).
+    fixed_w = [
+        ((2, 3), (2, 3), (3,), 5, 6, 4),
+        ((1,), (2,), (), 3, 4, 2),
+        ((), (), (), 259, 3, 1),
+        ((), (), (), 3, 513, 1),
+    ]
+    for shape, want in itertools.product(fixed_w, [(True, True, False), (True, False, False), (False, True, False)]):
+        a, b, w = needing(want, *operands(shape, 4))
+        assert torch.autograd.gradcheck(weighted_exp_sum, (a, b, w)), (shape, want)
+    # W needs one and A or B not (backward recomputes exp(A Bᵀ)).
+    for want in [(False, False, True), (True, False, True), (False, True, True)]:
+        a, b, w = needing(want, *operands(((2, 3), (2, 3), (3,), 5, 6, 4), 5))
+        assert torch.autograd.gradcheck(weighted_exp_sum, (a, b, w)), want
 
 
-def test_native_does_not_depend_on_the_thread_count(native):
-    a, b, w = operands(((2, 10), (2, 10), (10,), 600, 300, 8), 5, requires_grad=True)
+def test_native_forward_forms_the_a_b_gradients_only_when_w_is_fixed(native, monkeypatch):
+    calls: list[tuple[str, tuple[bool, ...]]] = []
+    forward, backward = native_library.ExpSumLibrary.forward, native_library.ExpSumLibrary.backward
+
+    def spy_forward(self, a, b, w, offsets, with_grads=(False, False)):
+        calls.append(("forward", tuple(with_grads)))
+        return forward(self, a, b, w, offsets, with_grads)
+
+    def spy_backward(self, a, b, w, offsets, grad, needs):
+        calls.append(("backward", tuple(needs)))
+        return backward(self, a, b, w, offsets, grad, needs)
+
+    monkeypatch.setattr(native_library.ExpSumLibrary, "forward", spy_forward)
+    monkeypatch.setattr(native_library.ExpSumLibrary, "backward", spy_backward)
+    base = operands(SHAPES[4], 10)
+    expected = {
+        (True, True, False): [("forward", (True, True))],
+        (True, False, False): [("forward", (True, False))],
+        (False, True, False): [("forward", (False, True))],
+        (True, True, True): [("forward", (False, False)), ("backward", (True, True, True))],
+        (False, False, True): [("forward", (False, False)), ("backward", (False, False, True))],
+    }
+    for want, seen in expected.items():
+        calls.clear()
+        tensors = needing(want, *base)
+        torch.autograd.grad(weighted_exp_sum(*tensors).sum(), [t for t in tensors if t.requires_grad])
+        assert calls == seen, want
+    # No gradient wanted, or grad mode off: the plain sums, the same bits as with G_A, G_B.
+    calls.clear()
+    fused = weighted_exp_sum(*needing((True, True, False), *base))
+    with torch.no_grad():
+        off = weighted_exp_sum(*needing((True, True, False), *base))
+    plain = weighted_exp_sum(*base)
+    assert calls == [("forward", (True, True)), ("forward", (False, False)), ("forward", (False, False))]
+    assert torch.equal(fused.detach(), off) and torch.equal(off, plain)
+
+
+@pytest.mark.parametrize("w_grad", [True, False], ids=["recompute", "fused"])
+def test_native_is_bit_identical_across_calls_and_thread_counts(native, w_grad):
+    # n = 600: three row splits, so G_B or dL/dB is a sum of three per-unit partials (fixed order).
+    a, b, w = needing((True, True, w_grad), *operands(((2, 10), (2, 10), (10,), 600, 300, 8), 5))
+    wanted = [t for t in (a, b, w) if t.requires_grad]
     threads = torch.get_num_threads()
     results = []
     try:
-        for count in (1, 3):
+        for count in (1, 2, 2, 3):
             torch.set_num_threads(count)
             value = weighted_exp_sum(a, b, w)
-            results.append((value, *torch.autograd.grad(value.sum(), (a, b, w))))
+            results.append((value, *torch.autograd.grad((value * value.detach()).sum(), wanted)))
     finally:
         torch.set_num_threads(threads)
-    for one, three in zip(*results, strict=True):
-        assert torch.equal(one, three)
+    for first, *others in zip(*results, strict=True):
+        assert all(torch.equal(first, other) for other in others)
 
 
 def test_native_does_not_copy_a_broadcast_w(native, monkeypatch):

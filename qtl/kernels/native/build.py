@@ -52,21 +52,24 @@ def compile_kernel(target: Path) -> None:
 def check_against_torch() -> None:
     """The built kernel's value and gradients equal the plain torch formula on a small odd-shaped problem.
 
-    A and B `2 x 3 x n x K`, W `3 x n x m` broadcast over the leading dimension (as for restarts).
+    A and B `2 x 3 x n x K`, W `3 x n x m` broadcast over the leading dimension (as for restarts);
+    once with W needing a gradient (backward recomputes) and once without (forward forms G_A, G_B).
     """
     gen = torch.Generator().manual_seed(0)
     a = (0.3 * torch.randn(2, 3, 37, 5, generator=gen, dtype=torch.float64)).requires_grad_()
     b = (0.3 * torch.randn(2, 3, 41, 5, generator=gen, dtype=torch.float64)).requires_grad_()
-    w = torch.rand(3, 37, 41, generator=gen, dtype=torch.float64).requires_grad_()
-    native = NativeWeightedExpSum.apply(a, b, w.expand(2, -1, -1, -1), load_exp_sum())
-    reference = (w * torch.exp(a @ b.mT)).sum((-2, -1))
-    for got, want in zip(
-        (native, *torch.autograd.grad(native.sum(), (a, b, w))),
-        (reference, *torch.autograd.grad(reference.sum(), (a, b, w))),
-        strict=True,
-    ):
-        if not torch.allclose(got, want, rtol=CHECK_RTOL, atol=0.0):
-            raise BuildError(f"the compiled kernel disagrees with torch (max error {(got - want).abs().max():.3g})")
+    w = torch.rand(3, 37, 41, generator=gen, dtype=torch.float64)
+    for operands in ((a, b, w.requires_grad_()), (a, b, w.detach())):
+        wanted = tuple(t for t in operands if t.requires_grad)
+        native = NativeWeightedExpSum.apply(a, b, operands[2].expand(2, -1, -1, -1), load_exp_sum(), True)
+        reference = (operands[2] * torch.exp(a @ b.mT)).sum((-2, -1))
+        for got, want in zip(
+            (native, *torch.autograd.grad(native.sum(), wanted)),
+            (reference, *torch.autograd.grad(reference.sum(), wanted)),
+            strict=True,
+        ):
+            if not torch.allclose(got, want, rtol=CHECK_RTOL, atol=0.0):
+                raise BuildError(f"the compiled kernel disagrees with torch (max error {(got - want).abs().max():.3g})")
 
 
 def build(force: bool = False) -> Path:

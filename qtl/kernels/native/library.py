@@ -32,7 +32,7 @@ class ExpSumLibrary:
 
     def __init__(self, path: Path) -> None:
         lib = ctypes.CDLL(str(path))
-        lib.qtl_exp_sum_forward.argtypes = [*_COMMON, _PTR, _INT]
+        lib.qtl_exp_sum_forward.argtypes = [*_COMMON, _PTR, _PTR, _PTR, _INT]
         lib.qtl_exp_sum_forward.restype = _INT
         lib.qtl_exp_sum_backward.argtypes = [*_COMMON, _PTR, _PTR, _PTR, _PTR, _INT]
         lib.qtl_exp_sum_backward.restype = _INT
@@ -43,16 +43,31 @@ class ExpSumLibrary:
     def _sizes(a: Tensor, b: Tensor, offsets: tuple[Tensor, Tensor, Tensor, Tensor]) -> list[int]:
         return [offsets[0].numel(), a.shape[-2], b.shape[-2], a.shape[-1]]
 
-    def forward(self, a: Tensor, b: Tensor, w: Tensor, offsets: tuple[Tensor, Tensor, Tensor, Tensor]) -> Tensor:
-        """The sums, `items`."""
+    def forward(
+        self,
+        a: Tensor,
+        b: Tensor,
+        w: Tensor,
+        offsets: tuple[Tensor, Tensor, Tensor, Tensor],
+        with_grads: tuple[bool, bool] = (False, False),
+    ) -> tuple[Tensor, Tensor | None, Tensor | None]:
+        """The sums `items`, and where ``with_grads`` asks, G_A `items x n x K` and G_B `items x m x K`.
+
+        G_A[i] = Σ_j W_ij exp(a_i·b_j) b_j and G_B[j] = Σ_i W_ij exp(a_i·b_j) a_i, the gradients of
+        the sums for A and B, formed in the same pass as the sums (None where not asked for).
+        """
         sizes = self._sizes(a, b, offsets)
-        out = a.new_empty(sizes[0])
+        items, n, m, k = sizes
+        out = a.new_empty(items)
+        g_a = a.new_empty(items, n, k) if with_grads[0] else None
+        g_b = a.new_empty(items, m, k) if with_grads[1] else None
         status = self._lib.qtl_exp_sum_forward(
-            _ptr(a), _ptr(b), _ptr(w), *map(_ptr, offsets), *sizes, _ptr(out), torch.get_num_threads()
-        )
+            _ptr(a), _ptr(b), _ptr(w), *map(_ptr, offsets), *sizes,
+            _ptr(out), _ptr(g_a), _ptr(g_b), torch.get_num_threads(),
+        )  # fmt: skip
         if status:
             raise MemoryError("the native exp-sum kernel could not allocate its scratch memory")
-        return out
+        return out, g_a, g_b
 
     def backward(
         self,
