@@ -27,6 +27,8 @@ from qtl.models.fitting import DEFAULT_INDUCING, DEFAULT_MAX_ITER, DEFAULT_RESTA
 RUN_DIR_RESOLVER = "qtl.run_dir"
 HELP_WIDTH = 44  # column of the descriptions in --help
 PERTURBATION_HELP = "std of the restarts' perturbation, relative to each parameter's spread"
+BATCHED_HELP = ("all restarts at once: one batched rollout per evaluation, one joint optimisation of their summed "
+                "returns (false: one restart after the other)")
 SPACE_HELP = "log | natural: the space θ is handled in"
 INDUCING_HELP = "inducing inputs of the sparse GP (PILCO's FITC uses ~300)"
 
@@ -177,6 +179,7 @@ class LBFGSConfig(OptimizerConfig):
     max_iter: int = field(default=100, metadata=doc("function evaluations per run"))
     restarts: int = field(default=2, metadata=doc("runs in all, the first from the current ψ"))
     perturbation: float = field(default=0.1, metadata=doc(PERTURBATION_HELP))
+    batched: bool = field(default=False, metadata=doc(BATCHED_HELP))
 
 
 @dataclass
@@ -188,6 +191,7 @@ class AdamConfig(OptimizerConfig):
     lr: float = field(default=0.01, metadata=doc("learning rate"))
     restarts: int = field(default=1, metadata=doc("runs in all, the first from the current ψ"))
     perturbation: float = field(default=0.1, metadata=doc(PERTURBATION_HELP))
+    batched: bool = field(default=False, metadata=doc(BATCHED_HELP))
 
 
 @dataclass

@@ -1,7 +1,8 @@
-"""Policy search: finds the maximum, keeps the best ψ across restarts, survives invalid ψ."""
+"""Policy search: finds the maximum, keeps the best ψ across restarts, survives invalid ψ; restarts batched."""
 
 from __future__ import annotations
 
+import functools
 import math
 
 import pytest
@@ -9,7 +10,11 @@ import torch
 from torch import nn
 
 from qtl.errors import NonFiniteObjective
+from qtl.gaussian import Gaussian, GaussianMap
+from qtl.policies import Policy, RBFPolicy, SquashedPolicy
 from qtl.policy_search import AdamSearch, LBFGSSearch
+from qtl.propagation import MomentMatching
+from tests.helpers import quadratic_reward
 
 
 class Point(nn.Module):
@@ -59,3 +64,159 @@ def test_bad_settings_are_named():
         LBFGSSearch(max_iter=0)
     with pytest.raises(ValueError, match="steps must be >= 1 and lr > 0"):
         AdamSearch(lr=0.0)
+
+
+# -- batched restarts ---------------------------------------------------------------------------------
+
+TARGET = torch.tensor([1.0, -2.0], dtype=torch.float64)
+
+
+class BowlPolicy(Policy):
+    """A toy policy: ψ = (``x`` `2`, trainable; ``tag`` `1`, fixed, perturbed per restart so that restarts differ)."""
+
+    input_dim = output_dim = 2
+
+    def __init__(self, start: list[float]) -> None:
+        super().__init__()
+        self.x = nn.Parameter(torch.tensor(start, dtype=torch.float64))
+        self.tag = nn.Parameter(torch.zeros(1, dtype=torch.float64), requires_grad=False)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """Not used."""
+        raise NotImplementedError
+
+    def prepare(self) -> GaussianMap:
+        """Not used."""
+        raise NotImplementedError
+
+    def value(self) -> torch.Tensor:
+        """1 − ‖x − (1, −2)‖²: `R` when ψ are batched, a scalar otherwise."""
+        return 1.0 - (self.x - TARGET).square().sum(-1)
+
+
+def first_points(search, policy, objective, seed=0) -> list[torch.Tensor]:
+    """ψ (all of it) at the first evaluation of every restart, and the search's result."""
+    seen, firsts = [], []
+
+    def recording() -> torch.Tensor:
+        psi = torch.cat([p.detach().flatten(start_dim=len(policy.batch_shape)) for p in policy.parameters()], -1)
+        seen.append(psi.clone())
+        return objective()
+
+    result = search(policy, recording, generator=torch.Generator().manual_seed(seed))
+    if search.batched:
+        firsts = list(seen[0])
+    else:  # the fixed tag (ψ's last entry) differs between runs: a run starts where it changes
+        firsts = [psi for i, psi in enumerate(seen) if i == 0 or not torch.equal(seen[i - 1][-1:], psi[-1:])]
+    return firsts, result
+
+
+@pytest.mark.parametrize("make", [lambda b: LBFGSSearch(max_iter=5, restarts=3, perturbation=0.5, batched=b),
+                                  lambda b: AdamSearch(steps=5, restarts=3, perturbation=0.5, batched=b)])
+def test_batched_starts_where_the_sequential_search_starts(make):
+    """Restart 0 from the current ψ, restart r > 0 from the same perturbation (same generator draws, same order)."""
+    starts = {}
+    for batched in (False, True):
+        policy = BowlPolicy([0.0, 0.0])
+        starts[batched], _ = first_points(make(batched), policy, policy.value)
+    assert len(starts[True]) == len(starts[False]) == 3
+    for sequential, batched in zip(starts[False], starts[True], strict=True):
+        assert torch.equal(sequential, batched)
+    assert not torch.equal(starts[True][1], starts[True][2])
+
+
+@pytest.mark.parametrize("search", [LBFGSSearch(max_iter=30, restarts=3, batched=True),
+                                    AdamSearch(steps=300, lr=0.05, restarts=3, batched=True)])
+def test_batched_search_finds_the_maximum_and_leaves_the_best_restart(search):
+    policy = BowlPolicy([0.0, 0.0])
+    result = search(policy, policy.value, generator=torch.Generator().manual_seed(0))
+    assert policy.batch_shape == () and policy.x.shape == (2,)  # the plain policy again
+    assert result.value == pytest.approx(1.0, abs=1e-4) and result.value == max(result.run_values)
+    assert result.value == pytest.approx(float(policy.value()), abs=0, rel=0)  # the best ψ is the one left
+    assert len(result.run_values) == 3 and result.evaluations == 3 * result.rollouts
+
+
+def test_batched_search_of_a_real_rollout_improves_it(gp_factory):
+    """Moment matching, squashed RBF policy: the joint search improves V and leaves the best restart's ψ."""
+    gp = gp_factory(30, 3, 1, (1,), seed=22)
+    gen = torch.Generator().manual_seed(23)
+    policy = SquashedPolicy(RBFPolicy(4, 1, 8, targets=torch.randn(8, 1, generator=gen, dtype=torch.float64),
+                                      generator=gen), 2.0)
+    propagator = MomentMatching(gp, policy, quadratic_reward(3, (1,)), angle_dims=(1,))
+    start = Gaussian(torch.tensor([0.1, 0.2, -0.1], dtype=torch.float64), 0.01 * torch.eye(3, dtype=torch.float64))
+    objective = functools.partial(propagator.expected_return, start, 5)
+    with torch.no_grad():
+        before = float(objective())
+    ticks = []
+    result = LBFGSSearch(max_iter=4, restarts=2, batched=True)(
+        policy, objective, generator=torch.Generator().manual_seed(1), tick=lambda: ticks.append(1))
+    with torch.no_grad():
+        after = float(objective())
+    assert result.value > before and result.value == max(result.run_values)
+    assert after == pytest.approx(result.value, rel=1e-12, abs=0)  # batched and plain rollouts: round-off apart
+    assert result.rollouts == len(ticks) <= 4 and result.evaluations == 2 * result.rollouts
+
+
+@pytest.mark.parametrize("failure", ["nan", "linalg"])
+@pytest.mark.parametrize("make", [lambda: LBFGSSearch(max_iter=40, restarts=3, perturbation=0.5, batched=True),
+                                  lambda: AdamSearch(steps=200, lr=0.05, restarts=3, perturbation=0.5, batched=True)])
+def test_a_restart_that_fails_is_dropped_and_the_others_go_on(make, failure):
+    """From its 2nd evaluation on, one restart's value is NaN (or its rollout raises): it stops, the others converge."""
+    search = make()
+    policy = BowlPolicy([0.0, 0.0])
+    tags = [float(state["tag"]) for state in search.starting_states(policy, torch.Generator().manual_seed(0))]
+    bad_tag = max(tags)
+    bad = tags.index(bad_tag)
+    calls = 0
+
+    def objective() -> torch.Tensor:
+        nonlocal calls
+        calls += 1
+        value = policy.value()
+        hit = (policy.tag == bad_tag).flatten(start_dim=len(policy.batch_shape)).any(-1)
+        if calls > 1 and bool(hit.any()):
+            if failure == "linalg":
+                raise torch.linalg.LinAlgError("not positive-definite")
+            value = torch.where(hit, math.nan, value)
+        return value
+
+    result = search(policy, objective, generator=torch.Generator().manual_seed(0))
+    assert math.isfinite(result.run_values[bad]) and result.run_values[bad] < 1.0 - 1e-3  # stopped early, best kept
+    others = [v for r, v in enumerate(result.run_values) if r != bad]
+    assert others == pytest.approx([1.0, 1.0], abs=1e-4)  # the others went on to the maximum
+    assert result.value == max(others) and float(policy.tag) != bad_tag
+    assert result.evaluations < 3 * result.rollouts  # the dropped restart stopped counting
+
+
+def test_batched_adam_follows_each_restarts_own_path():
+    """Adam acts per element: the batched search ends where the sequential one ends (round-off apart)."""
+    found = {}
+    for batched in (False, True):
+        policy = BowlPolicy([0.0, 0.0])
+        search = AdamSearch(steps=20, lr=0.05, restarts=3, perturbation=0.5, batched=batched)
+        result = search(policy, policy.value, generator=torch.Generator().manual_seed(0))
+        found[batched] = (result, policy.x.detach().clone())
+    (seq, x_seq), (bat, x_bat) = found[False], found[True]
+    torch.testing.assert_close(x_bat, x_seq, rtol=1e-12, atol=1e-12)
+    assert bat.run_values == pytest.approx(seq.run_values, rel=1e-12)
+    assert bat.evaluations == seq.evaluations == 60 and bat.rollouts == 20
+
+
+def test_batched_search_is_reproducible():
+    results = []
+    for _ in range(2):
+        policy = BowlPolicy([0.0, 0.0])
+        result = LBFGSSearch(max_iter=8, restarts=3, batched=True)(
+            policy, lambda p=policy: p.value(), generator=torch.Generator().manual_seed(4))
+        results.append((result, policy.x.detach().clone()))
+    assert results[0][0] == results[1][0] and torch.equal(results[0][1], results[1][1])
+
+
+def test_batched_search_needs_a_policy_and_one_value_per_restart():
+    point = Point([0.0, 0.0])
+    with pytest.raises(TypeError, match="unbatched qtl Policy"):
+        LBFGSSearch(restarts=2, batched=True)(point, lambda: bowl(point))
+    policy = BowlPolicy([0.0, 0.0])
+    with pytest.raises(ValueError, match="one predicted return per restart"):
+        LBFGSSearch(restarts=2, batched=True)(policy, lambda: policy.value().sum())
+    assert policy.batch_shape == () and policy.x.shape == (2,)  # put back after a failure too

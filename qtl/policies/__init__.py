@@ -1,6 +1,7 @@
-"""Policies: the RBF network of Eq. 5, a linear policy, and sine squashing to the action bounds."""
+"""Policies: the RBF network of Eq. 5, a linear policy, sine squashing to the action bounds; restarts batched."""
 
 from qtl.policies.base import Policy
+from qtl.policies.batching import batched_policy, psi_names, restart_state, set_psi, stack_psi
 from qtl.policies.factories import linear_policy, rbf_policy
 from qtl.policies.linear import LinearPolicy
 from qtl.policies.rbf import POLICY_NOISE_VARIANCE, POLICY_SIGNAL_VARIANCE, RBFPolicy
@@ -13,8 +14,13 @@ __all__ = [
     "Policy",
     "RBFPolicy",
     "SquashedPolicy",
+    "batched_policy",
     "linear_policy",
+    "psi_names",
     "rbf_policy",
+    "restart_state",
+    "set_psi",
     "sin_squash",
     "sin_squash_moments",
+    "stack_psi",
 ]

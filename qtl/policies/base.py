@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 
+import torch
 from torch import Tensor, nn
 
 from qtl.gaussian import Gaussian, GaussianMap, MomentMatch
@@ -15,10 +16,20 @@ class Policy(nn.Module, ABC):
     ``forward`` acts on plain tensors (the real system); ``prepare`` returns the map of
     Gaussian inputs with exact output moments, with everything that depends only on ψ
     computed once (a rollout prepares once and calls it at every step).
+
+    ``batch_shape``: leading dimensions that every ψ tensor carries (`R`, restarts searched
+    together; empty for one policy, see :mod:`qtl.policies.batching`). A batched policy's
+    moment map broadcasts R against the batch of its Gaussian input, and ``forward`` takes
+    features `R x S x D` (S points per restart, or anything that broadcasts to it).
     """
 
     input_dim: int
     output_dim: int
+    batch_shape: torch.Size = torch.Size()
+
+    def per_point(self, psi: Tensor) -> Tensor:
+        """A ψ-derived `R x ...` as `R x 1 x ...`, to broadcast against inputs `R x S x D`; as is when unbatched."""
+        return psi.unsqueeze(len(self.batch_shape)) if self.batch_shape else psi
 
     @abstractmethod
     def forward(self, x: Tensor) -> Tensor:

@@ -40,21 +40,29 @@ class LinearPolicy(Policy):
         self.bias = nn.Parameter(bias.to(dtype).clone())
 
     def forward(self, x: Tensor) -> Tensor:
-        """Actions `... x F` for features `... x D`."""
-        return x @ self.weight.mT + self.bias
+        """Actions `... x F` for features `... x D`; batched ψ: `R x S x F` for `R x S x D`."""
+        if not self.batch_shape:
+            return x @ self.weight.mT + self.bias
+        return _row_times(x, self.per_point(self.weight)) + self.per_point(self.bias)
 
     def prepare(self) -> GaussianMap:
-        """Exact moments: mean W μ + b, covariance W Σ Wᵀ, gain Wᵀ."""
+        """Exact moments: mean W μ + b, covariance W Σ Wᵀ, gain Wᵀ; batched ψ broadcast against the input's batch."""
         weight, bias = self.weight, self.bias
+        batched = bool(self.batch_shape)
 
         def moments(state: Gaussian) -> MomentMatch:
             state = state.expand()
-            cross_cov = state.cov @ weight.mT  # D x F
+            cross_cov = state.cov @ weight.mT  # ... x D x F
             return MomentMatch(
-                mean=state.mean @ weight.mT + bias,
+                mean=(_row_times(state.mean, weight) if batched else state.mean @ weight.mT) + bias,
                 cov=weight @ cross_cov,
                 cross_cov=cross_cov,
                 gain=weight.mT.expand(*cross_cov.shape),
             )
 
         return moments
+
+
+def _row_times(rows: Tensor, weight: Tensor) -> Tensor:
+    """W r per row: `... x F` for rows `... x D` and W `... x F x D`, batch dimensions broadcast."""
+    return (rows[..., None, :] @ weight.mT).squeeze(-2)

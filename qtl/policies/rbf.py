@@ -71,8 +71,8 @@ class RBFPolicy(Policy):
         )
 
     def weights(self) -> Tensor:
-        """β_π = (K_π + σ_π²I)⁻¹ y_π per action dimension (Eq. 5): `F x N`."""
-        scaled = self.support_points / self.lengthscales[:, None, :]  # F x N x D
+        """β_π = (K_π + σ_π²I)⁻¹ y_π per action dimension (Eq. 5): `... x F x N` (`...`: ``batch_shape``)."""
+        scaled = self.support_points[..., None, :, :] / self.lengthscales[..., :, None, :]  # ... x F x N x D
         sq_dist = (scaled[..., :, None, :] - scaled[..., None, :, :]).square().sum(-1)
         gram = POLICY_SIGNAL_VARIANCE * torch.exp(-0.5 * sq_dist)
         gram = gram + POLICY_NOISE_VARIANCE * torch.eye(self.num_basis, dtype=gram.dtype, device=gram.device)
@@ -80,16 +80,17 @@ class RBFPolicy(Policy):
         return torch.cholesky_solve(self.targets.mT[..., None], chol).squeeze(-1)
 
     def forward(self, x: Tensor) -> Tensor:
-        """Actions `... x F` for features `... x D` (Eq. 5)."""
-        inv_ls = self.log_lengthscales.neg().exp()  # F x D
+        """Actions `... x F` for features `... x D` (Eq. 5); batched ψ: `R x S x F` for `R x S x D`."""
+        inv_ls = self.log_lengthscales.neg().exp()  # (R x) F x D
+        scaled_s = self.per_point(self.support_points[..., None, :, :] * inv_ls[..., :, None, :])  # (R x 1 x) F x N x D
+        inv_ls = self.per_point(inv_ls)
         scaled_x = x[..., None, :] * inv_ls  # ... x F x D
-        scaled_s = self.support_points * inv_ls[:, None, :]  # F x N x D
         # ‖(x − x_s)/ℓ‖² expanded, so that memory is `... x F x N` rather than `... x F x N x D`.
         cross = (scaled_x[..., :, None, :] @ scaled_s.mT).squeeze(-2)  # ... x F x N
         sq_dist = scaled_x.square().sum(-1)[..., None] + scaled_s.square().sum(-1) - 2 * cross
         kern = POLICY_SIGNAL_VARIANCE * torch.exp(-0.5 * sq_dist.clamp_min(0.0))
-        return (kern * self.weights()).sum(-1)
+        return (kern * self.per_point(self.weights())).sum(-1)
 
     def prepare(self) -> GaussianMap:
-        """Exact moments of the RBF network at Gaussian inputs, β_π computed once (PILCO gp2)."""
+        """Exact moments of the RBF network at Gaussian inputs, β_π computed once (PILCO gp2); batched ψ broadcast."""
         return SEKernelMoments(self.support_points, self.weights(), self.lengthscales, self._signal_variance())

@@ -33,7 +33,7 @@ class MomentMatching:
 
     ``model``: a :class:`~qtl.models.GPPosteriorCache` (or anything with ``posterior_cache()``),
     or a sequence of caches of equal sizes, stacked as a leading batch dimension `M` that
-    broadcasts against the batch of the start distribution. GP inputs are
+    broadcasts against the batch of the start distribution (and a batched policy's restarts `R`). GP inputs are
     [φ(x), u] (`D + K + F`), GP outputs Δ = x_{t+1} − x_t in raw coordinates (`E = D`).
     ``policy``: acts on the features φ(x) (``prepare()`` gives its moment map).
     ``reward``: scores the successor states. ``angle_dims``: the dynamics' angle dimensions.
@@ -88,18 +88,29 @@ class MomentMatching:
             next_cov = next_cov + torch.diag_embed(self.noise_variance)
         return Gaussian(mean + delta.mean, symmetrize(next_cov)), act
 
+    def _with_policy_batch(self, state: Gaussian) -> Gaussian:
+        """``state`` in the propagation's dtype, its batch broadcast against a batched policy's (`R`, restarts)."""
+        state = state.to(dtype=self.dtype)
+        if not self.policy.batch_shape:
+            return state
+        batch = torch.broadcast_shapes(state.batch_shape, self.policy.batch_shape)
+        return Gaussian(state.mean.expand(*batch, state.dim), state.cov.expand(*batch, state.dim, state.dim))
+
     def step(self, state: Gaussian) -> tuple[Gaussian, Gaussian]:
         """One step: the distribution of x_{t+1} and that of the action u_t."""
-        next_state, action = self._step(state.to(dtype=self.dtype), self.policy.prepare())
+        next_state, action = self._step(self._with_policy_batch(state), self.policy.prepare())
         return next_state, action.output
 
     def rollout(self, start: Gaussian, horizon: int) -> Rollout:
-        """H steps from N(μ_0, Σ_0); V = Σ_{t=1..H} E[r(x_t)] (Eq. 4), differentiable in ψ."""
+        """H steps from N(μ_0, Σ_0); V = Σ_{t=1..H} E[r(x_t)] (Eq. 4), differentiable in ψ.
+
+        A batched policy (ψ `R x ...`, restarts) gives R rollouts at once: ``value`` `R` and so on.
+        """
         if start.dim != self.state_dim:
             raise ValueError(f"start must be a {self.state_dim}-D distribution, got {start.dim}-D")
         if horizon < 1:
             raise ValueError(f"horizon must be >= 1, got {horizon}")
-        start = start.to(dtype=self.dtype)
+        start = self._with_policy_batch(start)
         policy_map = self.policy.prepare()  # ψ-only quantities (β_π, ...) once per rollout
         states, actions = [start], []
         state = start

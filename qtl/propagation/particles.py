@@ -16,7 +16,8 @@ the draw index never changes, so every evaluation in a policy search sees the sa
 the objective is a deterministic function of ψ (what L-BFGS needs). With ``resample_every = k``
 it advances every k calls of :meth:`Particles.expected_return`: fresh noise every k evaluations,
 for stochastic optimisers (Adam). The noise is shared across the batch dimensions of the start
-distribution and of stacked models, so a batched rollout equals the per-item rollouts.
+distribution, of stacked models and of a batched policy's restarts (ψ `R x ...`, whose ``forward``
+takes `R x P x D`), so a batched rollout equals the per-item rollouts.
 
 Gaussian resampling (PIPPS's "GR", Parmas et al. 2018): with ``gaussian_resampling`` the particles
 are replaced after every step by P fresh draws x = m̂ + L̂ ε' from the Gaussian of their sample mean
@@ -197,7 +198,7 @@ class Particles:
             raise ValueError(f"horizon must be >= 1, got {horizon}")
         start = start.to(dtype=self.dtype)
         start_noise, step_noise, resampling_noise = self.base_noise(horizon, draw)
-        batch = torch.broadcast_shapes(start.batch_shape, self.model_batch_shape)
+        batch = torch.broadcast_shapes(start.batch_shape, self.model_batch_shape, self.policy.batch_shape)
         x = start.mean[..., None, :] + start_noise @ matrix_root(start.cov).mT  # x_0 = μ_0 + L_0 ε_0
         x = x.expand(*batch, self.num_particles, self.state_dim)
         states, actions, means, variances = [x], [], [], []

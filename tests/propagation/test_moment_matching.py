@@ -11,9 +11,11 @@ from hypothesis import strategies as st
 
 from qtl.features import AngleFeatures
 from qtl.gaussian import Gaussian
+from qtl.kernels import backend
 from qtl.policies import LinearPolicy, RBFPolicy, SquashedPolicy
 from qtl.propagation import MomentMatching
 from tests.helpers import gradcheck_value_wrt_policy_and_start, quadratic_reward
+from tests.propagation.restarts import assert_restarts_equal_separate
 
 DTYPE = torch.float64
 NUM_SAMPLES = 100_000
@@ -148,6 +150,23 @@ def test_batched_starts_equal_per_item(pendulum_system, cov_factory):
         torch.testing.assert_close(batched.value[i], single.value)
         torch.testing.assert_close(batched.states.mean[i], single.states.mean)
         torch.testing.assert_close(batched.states.cov[i], single.states.cov)
+
+
+@pytest.mark.parametrize(("inner", "kernels"), [("rbf", "torch"), ("linear", "torch"), ("rbf", "native")])
+def test_batched_restarts_equal_separate_rollouts(gp_factory, inner, kernels):
+    """A policy with ψ `R x ...`: one rollout gives the R values and gradients of R rollouts (1e-10 relative)."""
+    gp = gp_factory(40, 3, 1, (1,), seed=22)
+    gen = torch.Generator().manual_seed(23)
+    core = (RBFPolicy(4, 1, 8, targets=torch.randn(8, 1, generator=gen, dtype=DTYPE), generator=gen)
+            if inner == "rbf" else LinearPolicy(4, 1, generator=gen))
+    start = Gaussian(torch.tensor([0.1, 0.2, -0.1], dtype=DTYPE), 0.01 * torch.eye(3, dtype=DTYPE))
+    with backend("auto" if kernels == "native" else kernels) as active:
+        if active != kernels:
+            pytest.skip("the native exp-sum kernel is not built")
+        assert_restarts_equal_separate(
+            lambda policy: MomentMatching(gp, policy, quadratic_reward(3, (1,)), angle_dims=(1,)),
+            SquashedPolicy(core, 2.0), start, 6,
+        )
 
 
 def test_stacked_models_equal_per_model(gp_factory, cov_factory):

@@ -17,6 +17,7 @@ from qtl.policies import LinearPolicy, RBFPolicy, SquashedPolicy
 from qtl.propagation import MomentMatching, Particles
 from qtl.propagation.particles import _gaussian_resample, _safe_sqrt
 from tests.helpers import gradcheck_value_wrt_policy_and_start, quadratic_reward
+from tests.propagation.restarts import assert_restarts_equal_separate
 
 DTYPE = torch.float64
 # Enough particles that the Monte Carlo standard error of one step is small against the
@@ -219,6 +220,18 @@ def test_batched_starts_equal_per_item(gp_factory, cov_factory):
         single = particles.rollout(Gaussian(means[i], covs[i]), 4)
         torch.testing.assert_close(batched.value[i], single.value)
         torch.testing.assert_close(batched.states.cov[i], single.states.cov)
+
+
+@pytest.mark.parametrize(("expected_reward", "gaussian_resampling"), [(False, False), (True, True)])
+def test_batched_restarts_equal_separate_rollouts(gp_factory, expected_reward, gaussian_resampling):
+    """A policy with ψ `R x ...`: one rollout (the same base noise) gives the R values and gradients of R rollouts."""
+    gp, policy, reward = pendulum_parts(gp_factory)
+    start = Gaussian(torch.tensor([0.1, 0.2, -0.1], dtype=DTYPE), 0.01 * torch.eye(3, dtype=DTYPE))
+    assert_restarts_equal_separate(
+        lambda p: Particles(gp, p, reward, angle_dims=(1,), num_particles=20, expected_reward=expected_reward,
+                            gaussian_resampling=gaussian_resampling),
+        policy, start, 5,
+    )
 
 
 def test_stacked_models_equal_per_model(gp_factory, cov_factory):
