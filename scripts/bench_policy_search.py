@@ -14,9 +14,15 @@ policy search timed as the loop times it (propagator construction + search). ``-
 policy and propagation on the GPU (the targets are judged on the CPU only). Writes JSON (default
 ``docs/bench/policy_search[-cuda].json``) and, unless ``--no-docs``, its section of ``docs/benchmarks.md``.
 
+In the same run (issue 18), the moment-matching search at each ``--compare-sizes`` n (default 250, float64)
+under every combination of ``kernels.backend`` {torch, native} and ``optimizer.batched`` {false, true}
+(restarts one after the other, or all in one batched rollout): the same data, model and ψ_0, each in
+its own subprocess; absolute times, ratios against torch + sequential, and the predicted returns found.
+``--no-compare`` skips it.
+
     .venv/bin/python scripts/bench_policy_search.py [--sizes 250 500 1000] [--dtypes float64 float32]
         [--propagators moment_matching particles] [--threads 2] [--device cpu] [--repeats 3]
-        [--skip-search | --search-at-targets]
+        [--skip-search | --search-at-targets] [--compare-sizes 250 | --no-compare | --compare-only]
         [--overrides OVERRIDE ...] [--mm-overrides OVERRIDE ...] [--particles-overrides OVERRIDE ...]
         [--output PATH] [--no-docs] [--cache-dir DIR]
 """
@@ -26,6 +32,7 @@ from __future__ import annotations
 import argparse
 import functools
 import hashlib
+import itertools
 import json
 import logging
 import statistics
@@ -45,19 +52,24 @@ from omegaconf import DictConfig, OmegaConf
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import benchlib
 
-from qtl.build import DTYPES, build, resolve_device
+from qtl.build import DTYPES, Parts, build, resolve_device
 from qtl.config import register_configs
 from qtl.data import TransitionDataset, gp_training_pairs
 from qtl.episodes import policy_actor, random_actor, run_episode
 from qtl.features import AngleFeatures
 from qtl.gaussian import Gaussian
 from qtl.models import DynamicsGP
-from qtl.policies import RBFPolicy, SquashedPolicy
+from qtl.policies import RBFPolicy, SquashedPolicy, batched_policy, psi_names, set_psi, stack_psi
 from qtl.propagation import Propagator
 from qtl.seeding import ENV_STREAM, SEARCH_STREAM, derive_seed, seed_everything, torch_generator
 from qtl.task import Task
 
 SIZES = [250, 500, 1000]
+COMPARE_SIZES = [250]
+# The comparison of issue 18: exp-sum backend x restarts batched or not, moment matching, float64.
+BACKENDS = ["torch", "native"]
+RESTART_MODES = {False: "sequential", True: "batched"}
+BASELINE_VARIANT = ("torch", False)  # what the ratios are taken against
 # The loop's settings per propagator: Hydra overrides of the default `train` config.
 PROPAGATORS: dict[str, list[str]] = {
     "moment_matching": ["propagation=moment_matching", "optimizer=lbfgs"],
@@ -105,6 +117,17 @@ DESCRIPTION = (
     "search; torch.optim's one-off lazy import, ~1 s, is paid before, as the loop's GP fit pays it before its "
     "first search). Each configuration runs in a fresh subprocess; peak RSS is its `getrusage` max RSS (torch, "
     "GPyTorch and the model included). Evaluations: objective calls of the search (rollout + gradient each)."
+)
+
+COMPARE_DESCRIPTION = (
+    "Moment-matching policy search (the loop's `optimizer=lbfgs` settings), float64, the same data, model and ψ_0 "
+    "in every row, each row in its own subprocess: the exp sums on the torch path or the native kernel "
+    "(`kernels.backend`), and the restarts one after the other or all at once (`optimizer.batched=true`: one batched "
+    "rollout of the R restarts per evaluation, one L-BFGS over their summed returns). Rollouts: calls of the "
+    "objective (one per batched evaluation); evaluations: per restart (R per batched rollout). 'rollout + gradient': "
+    "one restart; 'batched, R restarts': one rollout + gradient of the R starting points of the search at once. "
+    "Ratios are times over torch + sequential (below 1: faster). Predicted return: the best V found; per restart in "
+    "brackets (the joint L-BFGS takes other steps than R separate ones, so the values differ)."
 )
 
 FLOOR_DESCRIPTION = (
@@ -229,7 +252,7 @@ def variance_product_s(num_outputs: int, num_particles: int, n: int, dtype: torc
 def measure(job: dict[str, Any]) -> dict[str, Any]:
     """Measure one (propagator, n, dtype) in this process; a failure is recorded, not raised."""
     torch.set_num_threads(job["threads"])
-    result: dict[str, Any] = {key: job[key] for key in ("propagator", "n", "dtype")}
+    result: dict[str, Any] = {key: job[key] for key in ("propagator", "n", "dtype", *_VARIANT_KEYS) if key in job}
     log_warnings = _WarningLog()
     logging.getLogger("qtl").addHandler(log_warnings)
     stage = "setup"
@@ -237,7 +260,8 @@ def measure(job: dict[str, Any]) -> dict[str, Any]:
         warnings.simplefilter("always")
         try:
             # -- Everything as the loop makes it (qtl.build), from the composed config. ----------------
-            cfg = compose_config(job["propagator"], job["dtype"], [*job["overrides"], f"device={job['device']}"])
+            cfg = compose_config(job["propagator"], job["dtype"],
+                                 [*job["overrides"], *variant_overrides(job), f"device={job['device']}"])
             seed_everything(cfg.seed)
             parts = build(cfg)
             task, reward, start, make_propagator = parts.task, parts.reward, parts.start, parts.make_propagator
@@ -246,7 +270,7 @@ def measure(job: dict[str, Any]) -> dict[str, Any]:
             warm_up_optimisers()
             result.update(horizon=task.horizon, propagation=OmegaConf.to_container(cfg.propagation, resolve=True),
                           optimizer=OmegaConf.to_container(cfg.optimizer, resolve=True),
-                          setup_rss_mib=benchlib.peak_rss_mib())
+                          kernel_backend=parts.kernel_backend, setup_rss_mib=benchlib.peak_rss_mib())
 
             # -- One rollout + gradient: a warm-up, then the median of the repeats. ------------------
             stage = "rollout + gradient"
@@ -265,6 +289,9 @@ def measure(job: dict[str, Any]) -> dict[str, Any]:
                 product = variance_product_s(task.state_dim, cfg.propagation.num_particles, job["n"], parts.dtype,
                                              parts.device)
                 result["variance_products_s_per_evaluation"] = task.horizon * product
+            if job.get("batched"):
+                stage = "batched rollout + gradient"
+                result.update(batched_rollout_grad(parts, model, policy, cfg.seed, job["repeats"]))
 
             # -- One policy search, timed as the loop times it (lines 6-9). --------------------------
             if not job["skip_search"]:
@@ -274,7 +301,7 @@ def measure(job: dict[str, Any]) -> dict[str, Any]:
                 found = parts.search(policy, functools.partial(propagator.expected_return, start, task.horizon),
                                      generator=torch_generator(cfg.seed, SEARCH_EPISODE, SEARCH_STREAM))
                 result.update(search_s=time.perf_counter() - tic, evaluations=found.evaluations,
-                              value_found=found.value, run_values=found.run_values)
+                              rollouts=found.rollouts, value_found=found.value, run_values=found.run_values)
         except Exception as err:  # a benchmark records what failed and goes on
             where = traceback.extract_tb(err.__traceback__)[-1]
             origin = f"{Path(where.filename).name}:{where.lineno}"
@@ -287,6 +314,36 @@ def measure(job: dict[str, Any]) -> dict[str, Any]:
     return result
 
 
+def batched_rollout_grad(parts: Parts, model: DynamicsGP, policy: SquashedPolicy, seed: int,
+                         repeats: int) -> dict[str, Any]:
+    """One rollout + gradient of the search's R starting points at once (ψ `R x ...`): median time and R."""
+    states = parts.search.starting_states(policy, torch_generator(seed, SEARCH_EPISODE, SEARCH_STREAM))
+    batched = batched_policy(policy, len(states))
+    set_psi(batched, stack_psi(states, psi_names(policy)), (len(states),))
+    propagator = parts.make_propagator(model, batched, parts.reward, angle_dims=parts.task.angle_dims)
+    times = []
+    for _ in range(repeats + 1):  # the first is a warm-up
+        batched.zero_grad()
+        tic = time.perf_counter()
+        propagator.expected_return(parts.start, parts.task.horizon).sum().backward()
+        times.append(time.perf_counter() - tic)
+    return {"batched_rollout_grad_s_median": statistics.median(times[1:]), "batched_restarts": len(states)}
+
+
+# What a comparison job adds to a job: the exp-sum backend and whether the restarts are batched.
+_VARIANT_KEYS = ("backend", "batched")
+
+
+def variant_overrides(job: dict[str, Any]) -> list[str]:
+    """The Hydra overrides of a comparison job's backend and restart mode (none for the other jobs)."""
+    overrides = []
+    if "backend" in job:
+        overrides.append(f"kernels.backend={job['backend']}")
+    if "batched" in job:
+        overrides.append(f"optimizer.batched={str(job['batched']).lower()}")
+    return overrides
+
+
 def run_job(job: dict[str, Any]) -> dict[str, Any]:
     """Measure one configuration in a fresh subprocess; a crash is recorded as an error."""
     done = subprocess.run([sys.executable, __file__, "--worker", json.dumps(job)], capture_output=True, text=True)
@@ -294,8 +351,50 @@ def run_job(job: dict[str, Any]) -> dict[str, Any]:
     if done.returncode == 0 and lines:
         return json.loads(lines[-1])
     tail = done.stderr.strip().splitlines()[-5:]
-    return {key: job[key] for key in ("propagator", "n", "dtype")} | {
+    return {key: job[key] for key in ("propagator", "n", "dtype", *_VARIANT_KEYS) if key in job} | {
         "error": f"worker exited with {done.returncode}: {' | '.join(tail)}"}
+
+
+def add_ratios(rows: list[dict[str, Any]]) -> None:
+    """Each comparison row's times over those of torch + sequential at the same n (where both were measured)."""
+    for row in rows:
+        base = next((r for r in rows if r["n"] == row["n"] and (r["backend"], r["batched"]) == BASELINE_VARIANT),
+                    None)
+        for key in ("search_s", "rollout_grad_s_median"):
+            if base is not None and key in row and key in base:
+                row[f"{key}_ratio"] = row[key] / base[key]
+
+
+def comparison_markdown(rows: list[dict[str, Any]]) -> list[str]:
+    """The backend x restarts table."""
+    lines = [
+        "### Restarts batched vs sequential, torch vs native exp sums (moment matching)",
+        "",
+        COMPARE_DESCRIPTION,
+        "",
+        "| n | backend | restarts | policy search (s) | ratio | rollouts | evaluations | s / rollout "
+        "| rollout + gradient (s) | ratio | batched, R restarts (s) | predicted return (per restart) |",
+        "| ---: | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- |",
+    ]
+    errors = []
+    for r in rows:
+        if "error" in r:
+            errors.append(f"{len(errors) + 1}. n = {r['n']}, {r['backend']}, {RESTART_MODES[r['batched']]}: "
+                          f"`{r['error']}`")
+        ratio = {key: f"{r[key]:.2f}" if key in r else "—" for key in ("search_s_ratio", "rollout_grad_s_median_ratio")}
+        per_rollout = f"{r['search_s'] / r['rollouts']:.3f}" if r.get("rollouts") else "—"
+        batched = (f"{r['batched_rollout_grad_s_median']:.3f} (R = {r['batched_restarts']})"
+                   if "batched_rollout_grad_s_median" in r else "—")
+        found = (f"{r['value_found']:.4g} ({', '.join(f'{v:.4g}' for v in r['run_values'])})"
+                 if "value_found" in r else (f"error ({len(errors)})" if "error" in r else "—"))
+        lines.append(
+            f"| {r['n']} | {r['backend']} | {RESTART_MODES[r['batched']]} | {_seconds(r, 'search_s')} | "
+            f"{ratio['search_s_ratio']} | {r.get('rollouts', '—')} | {r.get('evaluations', '—')} | {per_rollout} | "
+            f"{_seconds(r, 'rollout_grad_s_median')} | {ratio['rollout_grad_s_median_ratio']} | {batched} | {found} |"
+        )
+    if errors:
+        lines += ["", "Errors:", "", *errors]
+    return lines
 
 
 def judge(result: dict[str, Any], judged: bool, why_not: str = "settings overridden") -> tuple[str, str]:
@@ -347,7 +446,7 @@ def floor_lines(results: list[dict[str, Any]]) -> list[str]:
     return lines
 
 
-def markdown(results: list[dict[str, Any]], info: dict[str, Any]) -> str:
+def markdown(results: list[dict[str, Any]], info: dict[str, Any], comparison: list[dict[str, Any]]) -> str:
     """The section of docs/benchmarks.md."""
     m = info["machine"]
     settings = "the loop's settings" if info["judged"] else f"overridden settings ({', '.join(info['overrides_all'])})"
@@ -387,6 +486,8 @@ def markdown(results: list[dict[str, Any]], info: dict[str, Any]) -> str:
         lines += ["", FLOOR_DESCRIPTION, "", *floors]
     lines += ["", "Quoted in issue 8 for context — not measured here, other machines:", ""]
     lines += [f"- {ref}" for ref in QUOTED_REFERENCES]
+    if comparison:
+        lines += ["", *comparison_markdown(comparison)]
     return "\n".join(lines)
 
 
@@ -403,6 +504,10 @@ def main() -> None:
     parser.add_argument("--skip-search", action="store_true", help="only the rollout + gradient")
     parser.add_argument("--search-at-targets", action="store_true",
                         help="time the policy search only where issue 8 sets a target (rollout + gradient everywhere)")
+    parser.add_argument("--compare-sizes", type=int, nargs="+", default=COMPARE_SIZES,
+                        help="n of the backend x restarts comparison (moment matching, float64)")
+    parser.add_argument("--no-compare", action="store_true", help="skip the backend x restarts comparison")
+    parser.add_argument("--compare-only", action="store_true", help="only the backend x restarts comparison")
     parser.add_argument("--overrides", nargs="*", default=[], help="Hydra overrides for every configuration")
     parser.add_argument("--mm-overrides", nargs="*", default=[], help="Hydra overrides for moment matching only")
     parser.add_argument("--particles-overrides", nargs="*", default=[], help="Hydra overrides for particles only")
@@ -421,11 +526,24 @@ def main() -> None:
     output = (args.output or DEFAULT_OUTPUT.with_stem(DEFAULT_OUTPUT.stem + suffix)).resolve()
     per_propagator = {"moment_matching": args.mm_overrides, "particles": args.particles_overrides}
     data_cfg = compose_config("moment_matching", "float64", args.overrides)
-    results, models = [], {}
-    for n in args.sizes:
+    results, models, comparison = [], {}, []
+    compare_sizes = [] if args.no_compare else args.compare_sizes
+    if args.compare_only and args.no_compare:
+        parser.error("--compare-only and --no-compare leave nothing to measure")
+    for n in dict.fromkeys([*([] if args.compare_only else args.sizes), *compare_sizes]):
         path, models[n] = ensure_model(data_cfg, n, args.seed, args.cache_dir)
         how = "cached" if models[n]["cached"] else f"fitted in {models[n]['fit_s']:.1f} s"
         print(f"n={n}: model {how} ({path.name})", file=sys.stderr, flush=True)
+        for backend, batched in itertools.product(BACKENDS, RESTART_MODES) if n in compare_sizes else ():
+            job = {"propagator": "moment_matching", "n": n, "dtype": "float64", "model": str(path),
+                   "overrides": [*args.overrides, *args.mm_overrides], "threads": args.threads,
+                   "device": args.device, "repeats": args.repeats, "skip_search": False,
+                   "backend": backend, "batched": batched}
+            comparison.append(run_job(job))
+            print(json.dumps({k: v for k, v in comparison[-1].items() if k not in ("propagation", "optimizer")}),
+                  file=sys.stderr, flush=True)
+        if args.compare_only or n not in args.sizes:
+            continue
         for propagator in args.propagators:
             for dtype_name in args.dtypes:
                 job = {"propagator": propagator, "n": n, "dtype": dtype_name, "model": str(path),
@@ -455,8 +573,10 @@ def main() -> None:
     }
     for r in results:
         r["target"], r["met"] = judge(r, info["judged"], info["why_not_judged"])
+    add_ratios(comparison)
+    info["comparison"] = comparison
     benchlib.write_results(output, info, results)
-    section = markdown(results, info)
+    section = markdown(results, info, comparison)
     if not args.no_docs:
         benchlib.write_section(SECTION + suffix, section)
     print(section)

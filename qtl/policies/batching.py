@@ -34,7 +34,8 @@ def stack_psi(states: Sequence[Mapping[str, Tensor]], names: Sequence[str]) -> d
 def set_psi(policy: Policy, psi: Mapping[str, Tensor], batch_shape: Sequence[int] = ()) -> dict[str, nn.Parameter]:
     """Make ``psi`` (`*batch_shape x ...` per name, every ψ name) the parameters of ``policy``, in place.
 
-    Tensors that are not already parameters are wrapped as parameters with their ``requires_grad``.
+    Tensors that are not already parameters are wrapped as parameters that require gradients where
+    the parameters they replace do (a fixed part of ψ stays fixed).
     Every policy inside ``policy`` (a squashed policy's inner one too) gets ``batch_shape``.
     Returns the parameters it replaced, by name, so that a caller can put them back.
     """
@@ -51,7 +52,7 @@ def set_psi(policy: Policy, psi: Mapping[str, Tensor], batch_shape: Sequence[int
             raise ValueError(f"{name} must be `{tuple(shape + old.shape[old_batch:])}`, got {tuple(value.shape)}")
         replaced[name] = old
         setattr(owner, attr, value if isinstance(value, nn.Parameter)
-                else nn.Parameter(value, requires_grad=value.requires_grad))
+                else nn.Parameter(value, requires_grad=old.requires_grad))
     for module in policy.modules():
         if isinstance(module, Policy):
             module.batch_shape = shape

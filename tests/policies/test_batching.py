@@ -96,7 +96,7 @@ def test_set_psi_swaps_in_place_and_back():
     policy = LinearPolicy(3, 2, generator=torch.Generator().manual_seed(0))
     states = [policy.state_dict(), {k: v + 1.0 for k, v in policy.state_dict().items()}]
     plain = set_psi(policy, stack_psi(states, ["weight", "bias"]), (2,))
-    assert policy.batch_shape == (2,) and policy.weight.shape == (2, 2, 3)
+    assert policy.batch_shape == (2,) and policy.weight.shape == (2, 2, 3) and policy.weight.requires_grad
     x = torch.randn(4, 3, generator=torch.Generator().manual_seed(1), dtype=DTYPE)
     with torch.no_grad():
         shifted = policy(x)[1] - policy(x)[0]

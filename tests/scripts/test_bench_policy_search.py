@@ -1,4 +1,7 @@
-"""Smoke test of ``scripts/bench_policy_search.py``: its smallest configuration, writing nothing under docs/."""
+"""Smoke test of ``scripts/bench_policy_search.py``: its smallest configuration, writing nothing under docs/.
+
+The smallest configuration includes the backend x restarts comparison (issue 18) at n = 60.
+"""
 
 from __future__ import annotations
 
@@ -8,25 +11,28 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[2]
 SCRIPT = ROOT / "scripts" / "bench_policy_search.py"
 TINY = [
     "--sizes", "60", "--dtypes", "float64", "--threads", "1", "--repeats", "1",
     "--overrides", "task.horizon=10", "task.success.last_steps=3",
-    "--mm-overrides", "optimizer.max_iter=3", "optimizer.restarts=1",
+    "--mm-overrides", "optimizer.max_iter=3", "optimizer.restarts=2",
     "--particles-overrides", "optimizer.steps=3", "propagation.num_particles=20",
+    "--compare-sizes", "60",
 ]
 
 
 def test_smallest_configuration_measures_both_propagators_without_touching_docs(tmp_path: Path) -> None:
-    """Both propagators are timed at n = 60, the JSON goes to --output, docs/ stays as it was."""
+    """Both propagators and the 4 comparison variants are timed at n = 60, JSON to --output, docs/ unchanged."""
     docs = ROOT / "docs" / "benchmarks.md"
     before = docs.read_bytes() if docs.exists() else None
     output = tmp_path / "policy_search.json"
     done = subprocess.run(
         [sys.executable, str(SCRIPT), *TINY, "--output", str(output), "--cache-dir", str(tmp_path / "cache"),
          "--no-docs"],
-        capture_output=True, text=True, timeout=120, env={**os.environ, "OMP_NUM_THREADS": "1"},
+        capture_output=True, text=True, timeout=300, env={**os.environ, "OMP_NUM_THREADS": "1"},
     )
     assert done.returncode == 0, done.stderr[-3000:]
     assert (docs.read_bytes() if docs.exists() else None) == before
@@ -47,3 +53,24 @@ def test_smallest_configuration_measures_both_propagators_without_touching_docs(
     assert not report["judged"]
     assert report["models"]["60"]["n"] == 60 and list((tmp_path / "cache").glob("*.pt"))
     assert "## Policy search" in done.stdout and "not measured here" in done.stdout
+
+    # The comparison: {torch, native} x {sequential, batched}, ratios against torch + sequential.
+    rows = {(r["backend"], r["batched"]): r for r in report["comparison"]}
+    assert sorted(rows) == [("native", False), ("native", True), ("torch", False), ("torch", True)]
+    for (backend, batched), row in rows.items():
+        if backend == "native" and "error" in row:  # the native kernel is optional: not built here
+            assert "native" in row["error"]
+            continue
+        assert "error" not in row, row["error"]
+        assert row["kernel_backend"] == backend and row["optimizer"]["batched"] is batched
+        assert row["search_s"] > 0 and len(row["run_values"]) == 2 and row["value_found"] == max(row["run_values"])
+        assert row["evaluations"] == (2 if batched else 1) * row["rollouts"]
+        assert ("batched_rollout_grad_s_median" in row) is batched
+    base = rows[("torch", False)]
+    assert base["search_s_ratio"] == 1.0
+    assert rows[("torch", True)]["search_s_ratio"] == rows[("torch", True)]["search_s"] / base["search_s"]
+    # Same data, model and ψ_0 in every row: the same initial predicted return (the backends agree to round-off).
+    for row in rows.values():
+        if "value_initial" in row:
+            assert row["value_initial"] == pytest.approx(base["value_initial"], rel=1e-9)
+    assert "### Restarts batched vs sequential" in done.stdout
