@@ -17,7 +17,7 @@ from qtl.episodes import Actor, policy_actor
 from qtl.features import AngleFeatures
 from qtl.gaussian import Gaussian
 from qtl.kernels import use_backend
-from qtl.models import DynamicsGP, GPHyperparameters, ModelFit
+from qtl.models import DynamicsGP, GPHyperparameters, ModelFit, PreviousFit
 from qtl.policies import Policy, SquashedPolicy
 from qtl.policy_search import SearchResult
 from qtl.propagation import PropagatorFactory
@@ -88,11 +88,15 @@ class Parts:
         return SquashedPolicy(inner, torch.as_tensor(self.task.action_bound, dtype=self.dtype)).to(self.device)
 
     def fit_dynamics(
-        self, data: TransitionDataset, generator: torch.Generator, start: GPHyperparameters | None = None
+        self, data: TransitionDataset, generator: torch.Generator, start: GPHyperparameters | None = None,
+        previous: PreviousFit | None = None,
     ) -> DynamicsGP:
-        """θ_p by evidence maximisation on all tuples (line 12), from ``start`` or PILCO's heuristic, on the device."""
+        """θ_p by evidence maximisation on all tuples (line 12), from ``start`` or PILCO's heuristic, on the device.
+
+        ``previous``: the last episode's fit, where ``model.warm_start`` starts from (ignored when off).
+        """
         inputs, targets = gp_training_pairs(data, self.features, self.dtype, self.device)
-        return self.model.fit(inputs, targets, start=start, generator=generator)
+        return self.model.fit(inputs, targets, start=start, generator=generator, previous=previous)
 
     def actor(self, policy: Policy) -> Actor:
         """u = π(φ(x)) on real observations (line 11)."""

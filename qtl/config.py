@@ -245,6 +245,11 @@ class ModelConfig:
         default=DEFAULT_RESTARTS, metadata=doc("evidence maximisation: L-BFGS runs, the best kept per output"),
     )
     max_iter: int = field(default=DEFAULT_MAX_ITER, metadata=doc("L-BFGS iterations per run"))
+    warm_start: bool = field(
+        default=False,
+        metadata=doc("start each fit from the previous episode's θ_p (and Z), the cold restarts only for outputs "
+                     "whose evidence per point falls short of the previous fit's (the first fit: θ_s or heuristic)"),
+    )
 
 
 @dataclass

@@ -22,7 +22,7 @@ from qtl.build import build, transfer_plan
 from qtl.checkpoint import latest_checkpoint, load_checkpoint, refuse_existing_run, save_checkpoint, set_rng_state
 from qtl.data import TransitionDataset
 from qtl.episodes import one_step_smse, prediction_figure, random_actor, run_episode
-from qtl.models import GPHyperparameters, log_evidence
+from qtl.models import GPHyperparameters, PreviousFit, log_evidence
 from qtl.recorder import BASE_COLUMNS, THETA_P_PREFIX, RunRecorder, theta_columns, theta_row
 from qtl.seeding import (
     ACTION_STREAM,
@@ -66,12 +66,15 @@ def run(cfg: DictConfig, output_dir: Path, *, resume: bool = False) -> RunResult
     rows: list[dict[str, Any]] = []
     timings: list[dict[str, Any]] = []
     theta: GPHyperparameters | None = None  # θ of the latest model (none before the first fit)
+    previous: PreviousFit | None = None  # θ_p (and Z) of the latest fit, where model.warm_start starts from
     first = 0
     if checkpoint is not None:
         data = TransitionDataset.from_state(checkpoint["dataset"])
         policy.load_state_dict(checkpoint["policy"])
         rows, timings = list(checkpoint["metrics"]), list(checkpoint["timings"])
         theta = None if checkpoint["theta"] is None else GPHyperparameters(**checkpoint["theta"])
+        if checkpoint.get("previous_fit") is not None:  # absent in checkpoints made before model.warm_start
+            previous = PreviousFit.from_state_dict(checkpoint["previous_fit"])
         if "transfer" in checkpoint:  # checkpoints of runs made before transfer existed are PILCO runs
             plan.load_state_dict(checkpoint["transfer"])
         first = checkpoint["episode"] + 1
@@ -103,7 +106,8 @@ def run(cfg: DictConfig, output_dir: Path, *, resume: bool = False) -> RunResult
                     # -- Line 12: learn θ_p from all tuples (evidence maximisation). ---------------
                     tic = time.perf_counter()
                     model = parts.fit_dynamics(data, torch_generator(cfg.seed, episode, MODEL_STREAM),
-                                               start=plan.fit_start())
+                                               start=plan.fit_start(), previous=previous)
+                    previous = PreviousFit.of(model)
                     theta_p = model.hyperparameters
                     compliance = plan.compliance(model)  # Eq. 14 (NaN without a source)
                     # -- Lines 2, 13 and 5: θ_0 = θ_s, then the updating rule; f inferred with θ. --
@@ -153,6 +157,7 @@ def run(cfg: DictConfig, output_dir: Path, *, resume: bool = False) -> RunResult
                     "config": OmegaConf.to_yaml(cfg),
                     "dataset": data.state(),
                     "theta": None if theta is None else theta.state_dict(),
+                    "previous_fit": None if previous is None else previous.state_dict(),
                     "transfer": plan.state_dict(),
                     "policy": {k: v.detach().cpu().clone() for k, v in policy.state_dict().items()},
                     "metrics": recorder.rows,

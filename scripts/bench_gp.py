@@ -1,17 +1,25 @@
-"""Benchmark: DynamicsGP evidence maximisation, fit time and peak memory against dataset size.
+"""Benchmark: DynamicsGP evidence maximisation, cold (PILCO's heuristic start) against warm (``model.warm_start``).
 
-Each size runs in a fresh subprocess (so peak memory is its own), on 2 torch threads, E = 4
-outputs of a D = 6 input smooth function with noise, float64, the default fit (restarts and
-L-BFGS iterations of ``DynamicsGP.fit``). Writes ``docs/bench/gp.json`` and the table in
-``docs/benchmarks.md``.
+For each size n, in a fresh subprocess on 2 torch threads (E = 4 outputs of a D = 6 input smooth
+function with noise, float64, the default budget of ``DynamicsGP.fit``):
 
-    python scripts/bench_gp.py [--sizes 250 500 1000 2000] [--threads 2]
+- previous: one L-BFGS run on the same data less its last episode (the first n − T points),
+  which gives θ_p_{i−1} and its objective as a run would hand them over (not timed as a fit);
+- cold: today's fit on all n points, from the heuristic θ, ``restarts`` runs (the sizes of
+  ``--cold-sizes`` only: at n = 2000 it alone takes ~9 minutes on the dev VM);
+- warm: ``DynamicsGP.fit_warm`` from the previous θ_p, cold restarts only for the outputs it leaves short.
+
+Objectives are log evidence + log prior per data point, mean over the E outputs. Writes
+``docs/bench/gp.json`` and the GP section of ``docs/benchmarks.md``.
+
+    python scripts/bench_gp.py [--sizes 250 500 1000 2000] [--cold-sizes 250 500 1000] [--threads 2]
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 import time
@@ -22,88 +30,154 @@ import benchlib
 
 INPUT_DIM, OUTPUTS = 6, 4
 NOISE_STD = 0.05
+EPISODE = 50  # T: points of the last episode (the cart-pole horizon)
+EVIDENCE_EVALS = 5
 
 
-def run_one(n: int, threads: int, seed: int) -> dict:
-    """Fit one GP of size n in this process; return its figures."""
+def run_one(n: int, threads: int, seed: int, cold: bool) -> dict:
+    """Fit one GP of size n cold and warm in this process; return the figures."""
     import torch
 
-    from qtl.models import DynamicsGP
-    from qtl.models.dynamics_gp import DEFAULT_MAX_ITER, DEFAULT_RESTARTS
+    from qtl.models import DynamicsGP, PreviousFit
+    from qtl.models.dynamics_gp import DEFAULT_MAX_ITER, DEFAULT_RESTARTS, WARM_RESTART_TOLERANCE
 
     torch.set_num_threads(threads)
     gen = torch.Generator().manual_seed(seed)
     x = torch.rand(n, INPUT_DIM, generator=gen, dtype=torch.float64) * 4 - 2
     w = torch.randn(INPUT_DIM, OUTPUTS, generator=gen, dtype=torch.float64)
     y = torch.sin(x @ w / 2) + NOISE_STD * torch.randn(n, OUTPUTS, generator=gen, dtype=torch.float64)
-    model = DynamicsGP(x, y)
+
+    runs = {"count": 0}  # L-BFGS runs, counted around the model's one-run method
+    one_run = DynamicsGP._optimise
+
+    def counted(model: DynamicsGP, max_iter: int) -> torch.Tensor:
+        runs["count"] += 1
+        return one_run(model, max_iter)
+
+    DynamicsGP._optimise = counted  # type: ignore[method-assign]
     baseline = benchlib.peak_rss_mib()
-    start = time.perf_counter()
-    model.fit(generator=torch.Generator().manual_seed(seed))
-    seconds = time.perf_counter() - start
+
+    tic = time.perf_counter()
+    before = DynamicsGP(x[:-EPISODE], y[:-EPISODE])
+    before.fit(restarts=1)
+    previous = PreviousFit.of(before)
+    previous_s = time.perf_counter() - tic
+
+    row: dict = {"n": n, "E": OUTPUTS, "D": INPUT_DIM, "T": EPISODE, "restarts": DEFAULT_RESTARTS,
+                 "max_iter": DEFAULT_MAX_ITER, "tolerance": WARM_RESTART_TOLERANCE, "previous_fit_s": previous_s,
+                 "previous_objective": previous.objective.tolist()}
+    if cold:
+        model = DynamicsGP(x, y)
+        runs["count"] = 0
+        tic = time.perf_counter()
+        value = model.fit(generator=torch.Generator().manual_seed(seed))
+        row.update(cold_s=time.perf_counter() - tic, cold_objective=value.tolist(), cold_runs=runs["count"])
+
+    model = DynamicsGP(x, y)
+    runs["count"] = 0
+    tic = time.perf_counter()
+    value = model.fit_warm(previous.theta, previous.objective, generator=torch.Generator().manual_seed(seed))
+    row.update(warm_s=time.perf_counter() - tic, warm_objective=value.tolist(), warm_runs=runs["count"])
+
     model.train()
-    evals = 5
-    start = time.perf_counter()
-    for _ in range(evals):
+    tic = time.perf_counter()
+    for _ in range(EVIDENCE_EVALS):
         model.zero_grad()
         (-model.log_evidence().sum()).backward()
-    per_eval = (time.perf_counter() - start) / evals
-    return {
-        "n": n,
-        "E": OUTPUTS,
-        "D": INPUT_DIM,
-        "restarts": DEFAULT_RESTARTS,
-        "max_iter": DEFAULT_MAX_ITER,
-        "fit_s": seconds,
-        "evidence_and_grad_s": per_eval,
-        "peak_rss_mib": benchlib.peak_rss_mib(),
-        "rss_before_fit_mib": baseline,
-        "noise_std_learned": model.hyperparameters.noise_variance.sqrt().tolist(),
-    }
+    row.update(evidence_and_grad_s=(time.perf_counter() - tic) / EVIDENCE_EVALS,
+               peak_rss_mib=benchlib.peak_rss_mib(), rss_before_fit_mib=baseline)
+    return row
+
+
+def mean(values: list[float]) -> float:
+    """Mean of a list of floats."""
+    return sum(values) / len(values)
+
+
+def table(rows: list[dict]) -> list[str]:
+    """The markdown table of the results."""
+    lines = [
+        "| n | cold fit (s) | warm fit (s) | cold / warm | L-BFGS runs cold / warm | objective cold | "
+        "objective warm | objective previous (n − T) | log evidence + gradient (s) | peak RSS (MiB) |",
+        "| ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
+    ]
+    for r in rows:
+        cold = "cold_s" in r
+        lines.append(
+            f"| {r['n']} | {r['cold_s']:.1f} | {r['warm_s']:.1f} | {r['cold_s'] / r['warm_s']:.1f}x | "
+            f"{r['cold_runs']} / {r['warm_runs']} | {mean(r['cold_objective']):.4f} | "
+            if cold else f"| {r['n']} | — | {r['warm_s']:.1f} | — | — / {r['warm_runs']} | — | "
+        )
+        lines[-1] += (f"{mean(r['warm_objective']):.4f} | {mean(r['previous_objective']):.4f} | "
+                      f"{r['evidence_and_grad_s']:.3f} | {r['peak_rss_mib']:.0f} |")
+    return lines
+
+
+def evidence(rows: list[dict]) -> str:
+    """One paragraph: how the warm objective compares with the previous fit's and the cold fit's, per output."""
+    over_previous = [w - p for r in rows for w, p in zip(r["warm_objective"], r["previous_objective"], strict=True)]
+    cold_gain = [c - w for r in rows if "cold_s" in r
+                 for c, w in zip(r["cold_objective"], r["warm_objective"], strict=True)]
+    restarted = sum(r["warm_runs"] > 1 for r in rows)
+    text = (f"Per output, the warm objective lay {min(over_previous):+.4f} to {max(over_previous):+.4f} per point "
+            f"from the previous fit's (the restart rule's reference; tolerance {rows[0]['tolerance']})")
+    if cold_gain:
+        text += f", and the cold fit beat it by at most {max(cold_gain):+.5f} per point"
+    return text + f"; cold restarts ran at {restarted} of {len(rows)} sizes."
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", type=int, nargs="+", default=[250, 500, 1000, 2000])
+    parser.add_argument("--cold-sizes", type=int, nargs="*", default=[250, 500, 1000])
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--machine", default=None, help="how the machine is named in the docs (default: lscpu's)")
+    parser.add_argument("--output", type=Path, default=benchlib.ROOT / "docs" / "bench" / "gp.json")
+    parser.add_argument("--no-docs", action="store_true", help="do not rewrite the section of docs/benchmarks.md")
     parser.add_argument("--one", type=int, help=argparse.SUPPRESS)  # child process: one size
+    parser.add_argument("--cold", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.one is not None:
-        print(json.dumps(run_one(args.one, args.threads, args.seed)))
+        print(json.dumps(run_one(args.one, args.threads, args.seed, args.cold)))
         return
 
     rows = []
+    load = os.getloadavg()[0]
     for n in args.sizes:
-        out = subprocess.run(
-            [sys.executable, __file__, "--one", str(n), "--threads", str(args.threads), "--seed", str(args.seed)],
-            capture_output=True, text=True, check=True,
-        ).stdout
+        child = [sys.executable, __file__, "--one", str(n), "--threads", str(args.threads), "--seed", str(args.seed)]
+        out = subprocess.run(child + (["--cold"] if n in args.cold_sizes else []),
+                             capture_output=True, text=True, check=True).stdout
         rows.append(json.loads(out.strip().splitlines()[-1]))
-        print(f"n={n}: fit {rows[-1]['fit_s']:.1f} s, peak RSS {rows[-1]['peak_rss_mib']:.0f} MiB", flush=True)
+        r = rows[-1]
+        cold = f"cold {r['cold_s']:.1f} s ({mean(r['cold_objective']):.4f}), " if "cold_s" in r else ""
+        print(f"n={n}: {cold}warm {r['warm_s']:.1f} s ({mean(r['warm_objective']):.4f}), "
+              f"{r['warm_runs']} warm L-BFGS run(s)", flush=True)
 
     info = {"date": benchlib.today(), "command": benchlib.command_line(), "machine": benchlib.machine(),
-            "threads": args.threads, "results": rows}
-    out_path = benchlib.ROOT / "docs" / "bench" / "gp.json"
-    out_path.parent.mkdir(parents=True, exist_ok=True)
-    out_path.write_text(json.dumps(info, indent=2) + "\n")
-
+            "machine_name": args.machine, "threads": args.threads, "load_average_at_start": load}
+    benchlib.write_results(args.output, info, rows)
+    if args.no_docs:
+        return
     m = info["machine"]
+    name = args.machine or f"{m['cpu']} ({m['cores']} cores)"
     lines = [
-        "## GP dynamics model: evidence maximisation",
+        "## GP dynamics model: evidence maximisation, cold and warm",
         "",
-        f"`{info['command']}` — {info['date']}, {m['cpu']} ({m['cores']} cores), {args.threads} torch threads, "
-        f"torch {m['torch']}, float64. E = {OUTPUTS} outputs, D = {INPUT_DIM} inputs, default fit "
-        f"({rows[0]['restarts']} restarts × ≤ {rows[0]['max_iter']} L-BFGS iterations), exact Cholesky throughout. "
-        "Results: `docs/bench/gp.json`.",
+        f"`{info['command']}` — {info['date']}, {name}, {args.threads} torch threads, torch {m['torch']}, "
+        f"float64, load average {load:.2f} at the start. E = {OUTPUTS} outputs, D = {INPUT_DIM} inputs, "
+        f"{rows[0]['restarts']} restarts × ≤ {rows[0]['max_iter']} L-BFGS iterations, exact Cholesky throughout. "
+        f"Results: `{benchlib.display_path(args.output)}`.",
         "",
-        "| n | fit time (s) | log evidence + gradient (s) | peak RSS (MiB) | RSS before fit (MiB) |",
-        "| ---: | ---: | ---: | ---: | ---: |",
-    ]
-    lines += [
-        f"| {r['n']} | {r['fit_s']:.1f} | {r['evidence_and_grad_s']:.3f} | {r['peak_rss_mib']:.0f} | "
-        f"{r['rss_before_fit_mib']:.0f} |"
-        for r in rows
+        "*Cold* is today's default fit (`model.warm_start=false`): PILCO's heuristic θ, then the perturbed "
+        f"restarts. *Warm* (`model.warm_start=true`) starts from θ_p of the same data less its last episode "
+        f"(T = {EPISODE} points, fitted by one L-BFGS run, as the previous episode of a run hands it over) and "
+        "runs the cold restarts only for outputs whose objective falls more than `WARM_RESTART_TOLERANCE` below "
+        "that previous fit's. Objectives: log evidence + log prior per point, mean over outputs (higher is better).",
+        "",
+        *table(rows),
+        "",
+        evidence(rows),
     ]
     benchlib.write_section("bench_gp", "\n".join(lines))
 

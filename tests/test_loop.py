@@ -49,10 +49,15 @@ def test_same_seed_gives_identical_metrics_and_another_seed_does_not(tmp_path):
     assert a != c
 
 
-def test_resume_continues_exactly_as_an_uninterrupted_run(tmp_path):
-    run(tiny_config("episodes=3"), tmp_path / "whole")
-    run(tiny_config("episodes=1"), tmp_path / "split")  # "interrupted" after episode 1
-    run(tiny_config("episodes=3"), tmp_path / "split", resume=True)
+@pytest.mark.parametrize("model", [
+    [],
+    ["model.warm_start=true", "model.restarts=2"],  # θ_p (and its objective) of the last fit cross the resume
+    ["model.warm_start=true", "model.sparse_above=10", "model.inducing=6"],  # ... and the sparse fit's Z
+], ids=["default", "warm", "warm-sparse"])
+def test_resume_continues_exactly_as_an_uninterrupted_run(tmp_path, model):
+    run(tiny_config("episodes=3", *model), tmp_path / "whole")
+    run(tiny_config("episodes=1", *model), tmp_path / "split")  # "interrupted" after episode 1
+    run(tiny_config("episodes=3", *model), tmp_path / "split", resume=True)
     whole, split = tmp_path / "whole", tmp_path / "split"
     assert (whole / "metrics.csv").read_text() == (split / "metrics.csv").read_text()
     assert len(read_csv(split / "timings.csv")) == 4

@@ -4,6 +4,7 @@ from qtl.models.dynamics_gp import DynamicsGP, GPPosteriorCache, exact_gp_settin
 from qtl.models.fitting import AutoFit, ExactFit, ModelFit, SparseFit, log_evidence
 from qtl.models.hyperparameters import GPHyperparameters
 from qtl.models.sparse_gp import SparseDynamicsGP
+from qtl.models.warm_start import PreviousFit
 
 __all__ = [
     "AutoFit",
@@ -12,6 +13,7 @@ __all__ = [
     "GPHyperparameters",
     "GPPosteriorCache",
     "ModelFit",
+    "PreviousFit",
     "SparseDynamicsGP",
     "SparseFit",
     "exact_gp_settings",

@@ -48,6 +48,9 @@ DEFAULT_MAX_ITER = 100
 FIT_TOLERANCE_CHANGE = 1e-6
 # Standard deviation of the log-space perturbation of θ at each extra restart.
 RESTART_LOG_SCALE = 0.5
+# Warm start: an output whose warm objective (log evidence per point) falls more than this below the
+# previous episode's gets the cold restarts (docs/benchmarks.md, GP section, for the figures behind it).
+WARM_RESTART_TOLERANCE = 0.05
 
 CHECKPOINT_FORMAT = "qtl.DynamicsGP"
 CHECKPOINT_VERSION = 1
@@ -151,6 +154,7 @@ class DynamicsGP(gpytorch.models.ExactGP):
         self.hyperparameters = (
             hyperparameters if hyperparameters is not None else self.heuristic_hyperparameters()
         )
+        self.fit_objective: Tensor | None = None  # `E`: what the latest fit reached (None before any)
 
     # -- model -----------------------------------------------------------------------------
 
@@ -295,7 +299,65 @@ class DynamicsGP(gpytorch.models.ExactGP):
             failed = (~torch.isfinite(best_value)).nonzero().flatten().tolist()
             raise RuntimeError(f"evidence maximisation failed for output dimension(s) {failed}")
         self.hyperparameters = GPHyperparameters.from_log(best_theta)
+        self.fit_objective = best_value
         return best_value
+
+    def fit_warm(
+        self,
+        start: GPHyperparameters,
+        reference: Tensor,
+        *,
+        restarts: int = DEFAULT_RESTARTS,
+        max_iter: int = DEFAULT_MAX_ITER,
+        generator: torch.Generator | None = None,
+        tolerance: float = WARM_RESTART_TOLERANCE,
+    ) -> Tensor:
+        """Evidence maximisation from ``start`` (the previous θ_p); cold restarts only where it falls short.
+
+        One L-BFGS run from ``start``; an output whose objective is below ``reference`` `E` (the
+        previous fit's objective per point) minus ``tolerance``, or not finite, is refitted as
+        :meth:`fit` does from the current θ (the cold start: heuristic or θ_s) and its perturbations,
+        on a model of those outputs alone (the objective is separable over outputs); each output keeps
+        the better θ (every output short: the cold fit of this model). No output short: no restart runs.
+        Returns the per-output objective `E`.
+        """
+        cold = self.hyperparameters
+        cold_state = {name: value.clone() for name, value in self.state_dict().items()}  # θ bit for bit
+        try:
+            self.hyperparameters = start
+            value = self._optimise(max_iter)
+        except (NotPSDError, ValueError, RuntimeError) as err:
+            log.warning("warm-started GP fit failed, every output is refitted cold: %s", err)
+            value = torch.full((self.num_outputs,), -math.inf, dtype=cold.lengthscales.dtype,
+                               device=cold.lengthscales.device)
+        best = self.hyperparameters.log() if torch.isfinite(value).any() else cold.log()
+        short = ~torch.isfinite(value) | (value < reference.to(value) - tolerance)
+        if short.any():
+            chosen = short.nonzero().flatten()
+            log.info("warm GP fit short of the previous objective for output(s) %s: cold restarts there",
+                     chosen.tolist())
+            if short.all():  # every output: the cold fit of this model, from exactly its cold θ
+                self.load_state_dict(cold_state)
+                self.prediction_strategy = None
+                part = self
+            else:
+                part = DynamicsGP(self.train_x, self.train_y[:, chosen], cold.select(chosen), dtype=self.train_x.dtype)
+            try:
+                part_value = part.fit(restarts=restarts, max_iter=max_iter, generator=generator)
+            except RuntimeError as err:
+                log.warning("cold restarts failed: %s", err)
+                part_value = torch.full_like(value[chosen], -math.inf)
+            better = torch.isfinite(part_value) & (part_value > value[chosen])
+            if part is self and better.all():  # the cold fit won everywhere: keep its θ as it left it
+                return part_value
+            best[chosen[better]] = part.hyperparameters.log()[better]
+            value[chosen[better]] = part_value[better]
+        if not torch.isfinite(value).all():
+            failed = (~torch.isfinite(value)).nonzero().flatten().tolist()
+            raise RuntimeError(f"evidence maximisation failed for output dimension(s) {failed}")
+        self.hyperparameters = GPHyperparameters.from_log(best)
+        self.fit_objective = value
+        return value
 
     def _optimise(self, max_iter: int) -> Tensor:
         """One L-BFGS run on the summed objective; returns the per-output objective `E`."""

@@ -12,6 +12,7 @@ from torch import Tensor
 from qtl.models.dynamics_gp import DEFAULT_MAX_ITER, DEFAULT_RESTARTS, DynamicsGP
 from qtl.models.hyperparameters import GPHyperparameters
 from qtl.models.sparse_gp import DEFAULT_INDUCING, SparseDynamicsGP
+from qtl.models.warm_start import PreviousFit
 
 log = logging.getLogger(__name__)
 
@@ -29,8 +30,12 @@ class ModelFit(Protocol):
         *,
         start: GPHyperparameters | None = None,
         generator: torch.Generator | None = None,
+        previous: PreviousFit | None = None,
     ) -> DynamicsGP:
-        """θ_p by evidence maximisation on inputs `n x (F+U)` and targets Δ `n x E`, from ``start`` or the heuristic."""
+        """θ_p by evidence maximisation on inputs `n x (F+U)` and targets Δ `n x E`, from ``start`` or the heuristic.
+
+        With ``warm_start`` on, from the ``previous`` episode's fit where there is one.
+        """
         ...
 
 
@@ -54,6 +59,7 @@ class ExactFit:
 
     restarts: int = DEFAULT_RESTARTS
     max_iter: int = DEFAULT_MAX_ITER
+    warm_start: bool = False
 
     def __post_init__(self) -> None:
         _check_fit_budget(self.restarts, self.max_iter)
@@ -65,10 +71,20 @@ class ExactFit:
         *,
         start: GPHyperparameters | None = None,
         generator: torch.Generator | None = None,
+        previous: PreviousFit | None = None,
     ) -> DynamicsGP:
-        """The exact GP on inputs `n x (F+U)`, targets `n x E`, fitted from ``start`` (None: PILCO's heuristic)."""
+        """The exact GP on inputs `n x (F+U)`, targets `n x E`, fitted from ``start`` (None: PILCO's heuristic).
+
+        ``warm_start`` and a ``previous`` fit: from its θ_p, ``start`` being the cold start of the
+        outputs the warm fit leaves short (:meth:`DynamicsGP.fit_warm`).
+        """
         model = DynamicsGP(inputs, targets, hyperparameters=start, dtype=inputs.dtype)
-        model.fit(restarts=self.restarts, max_iter=self.max_iter, generator=generator)
+        if self.warm_start and previous is not None:
+            previous = previous.to(inputs.dtype, inputs.device)
+            model.fit_warm(previous.theta, previous.objective, restarts=self.restarts, max_iter=self.max_iter,
+                           generator=generator)
+        else:
+            model.fit(restarts=self.restarts, max_iter=self.max_iter, generator=generator)
         return model
 
 
@@ -79,6 +95,7 @@ class SparseFit:
     restarts: int = DEFAULT_RESTARTS
     max_iter: int = DEFAULT_MAX_ITER
     inducing: int = DEFAULT_INDUCING
+    warm_start: bool = False
 
     def __post_init__(self) -> None:
         _check_fit_budget(self.restarts, self.max_iter)
@@ -91,11 +108,22 @@ class SparseFit:
         *,
         start: GPHyperparameters | None = None,
         generator: torch.Generator | None = None,
+        previous: PreviousFit | None = None,
     ) -> DynamicsGP:
-        """The sparse GP on inputs `n x (F+U)`, targets `n x E`; ``generator`` draws Z, then the restarts."""
+        """The sparse GP on inputs `n x (F+U)`, targets `n x E`; ``generator`` draws Z, then the restarts.
+
+        ``warm_start`` and a ``previous`` fit: from its θ_p, and its Z where the data only grew and
+        the number of inducing inputs is the same (:meth:`SparseDynamicsGP.fit_warm`).
+        """
         model = SparseDynamicsGP(inputs, targets, hyperparameters=start, num_inducing=self.inducing,
                                  generator=generator, dtype=inputs.dtype)
-        model.fit(restarts=self.restarts, max_iter=self.max_iter, generator=generator)
+        if self.warm_start and previous is not None:
+            previous = previous.to(inputs.dtype, inputs.device)
+            inducing = previous.inducing if previous.num_points <= len(inputs) else None
+            model.fit_warm(previous.theta, previous.objective, inducing=inducing, restarts=self.restarts,
+                           max_iter=self.max_iter, generator=generator)
+        else:
+            model.fit(restarts=self.restarts, max_iter=self.max_iter, generator=generator)
         return model
 
 
@@ -107,6 +135,7 @@ class AutoFit:
     max_iter: int = DEFAULT_MAX_ITER
     sparse_above: int | None = DEFAULT_SPARSE_ABOVE
     inducing: int = DEFAULT_INDUCING
+    warm_start: bool = False
 
     def __post_init__(self) -> None:
         _check_fit_budget(self.restarts, self.max_iter)
@@ -121,15 +150,16 @@ class AutoFit:
         *,
         start: GPHyperparameters | None = None,
         generator: torch.Generator | None = None,
+        previous: PreviousFit | None = None,
     ) -> DynamicsGP:
         """:class:`ExactFit` or, above ``sparse_above`` tuples, :class:`SparseFit` on inputs `n x (F+U)`."""
         if self.sparse_above is not None and len(inputs) > self.sparse_above:
             log.info("%d tuples > model.sparse_above=%d: the sparse GP, %d inducing inputs", len(inputs),
                      self.sparse_above, min(self.inducing, len(inputs)))
-            chosen: ModelFit = SparseFit(self.restarts, self.max_iter, self.inducing)
+            chosen: ModelFit = SparseFit(self.restarts, self.max_iter, self.inducing, self.warm_start)
         else:
-            chosen = ExactFit(self.restarts, self.max_iter)
-        return chosen.fit(inputs, targets, start=start, generator=generator)
+            chosen = ExactFit(self.restarts, self.max_iter, self.warm_start)
+        return chosen.fit(inputs, targets, start=start, generator=generator, previous=previous)
 
 
 def log_evidence(model: DynamicsGP) -> float:

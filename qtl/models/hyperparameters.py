@@ -126,6 +126,11 @@ class GPHyperparameters:
             noise_variance=self.noise_variance.to(device=device, dtype=dtype),
         )
 
+    def select(self, outputs: Tensor) -> GPHyperparameters:
+        """θ of the output dimensions ``outputs`` (indices `k`) alone."""
+        return GPHyperparameters(self.lengthscales[outputs], self.signal_variance[outputs],
+                                 self.noise_variance[outputs])
+
     def detach(self) -> GPHyperparameters:
         """The same θ, cut from any autograd graph."""
         return GPHyperparameters(

@@ -1,0 +1,48 @@
+"""What one episode's evidence maximisation hands to the next: θ_p, its objective and Z (``model.warm_start``)."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from qtl.models.dynamics_gp import DynamicsGP
+from qtl.models.hyperparameters import GPHyperparameters
+from qtl.models.sparse_gp import SparseDynamicsGP
+
+
+@dataclass(frozen=True)
+class PreviousFit:
+    """The last fit's θ_p, per-output objective `E` (log evidence + log prior, / n), n, and Z `m x D` if sparse."""
+
+    theta: GPHyperparameters
+    objective: Tensor
+    num_points: int
+    inducing: Tensor | None = None
+
+    @classmethod
+    def of(cls, model: DynamicsGP) -> PreviousFit:
+        """What ``model`` found in its latest fit (call it before θ is replaced by a transfer rule's θ_i)."""
+        if model.fit_objective is None:
+            raise ValueError("the model has not been fitted: no objective to start the next fit from")
+        inducing = model.inducing_points.clone() if isinstance(model, SparseDynamicsGP) else None
+        return cls(model.hyperparameters, model.fit_objective.clone(), len(model.train_x), inducing)
+
+    def to(self, dtype: torch.dtype, device: torch.device | str) -> PreviousFit:
+        """The same fit on another dtype and device."""
+        inducing = None if self.inducing is None else self.inducing.to(dtype=dtype, device=device)
+        return PreviousFit(self.theta.to(dtype=dtype, device=device), self.objective.to(dtype=dtype, device=device),
+                           self.num_points, inducing)
+
+    def state_dict(self) -> dict[str, object]:
+        """Tensors and primitives on the CPU, for a checkpoint (:meth:`from_state_dict` inverts it)."""
+        return {"theta": self.theta.state_dict(), "objective": self.objective.cpu(), "num_points": self.num_points,
+                "inducing": None if self.inducing is None else self.inducing.cpu()}
+
+    @classmethod
+    def from_state_dict(cls, state: Mapping[str, object]) -> PreviousFit:
+        """Rebuild :meth:`state_dict`."""
+        return cls(GPHyperparameters(**state["theta"]), state["objective"], int(state["num_points"]),
+                   state["inducing"])
