@@ -4,7 +4,11 @@ Restarts run one after the other, or (``batched=True``) all at once: their ψ st
 restart dimension `R` of the policy (:mod:`qtl.policies.batching`), one batched rollout evaluates
 all R predicted returns, and one optimiser maximises their sum Σ_r V_r over the concatenated ψ
 (BoTorch's joint optimisation of restarts, ``gen_candidates_scipy``). The gradient of the sum is
-block-separable, so each restart gets its own gradient.
+block-separable, so each restart gets its own gradient. The batched search starts from the same
+points as the sequential one; what differs: L-BFGS's curvature memory, line search and stopping
+tests are joint (Adam acts per element, so its restarts follow their own paths), a batched value
+equals the plain policy's to round-off (~1e-15 relative), and a stochastic objective (particles
+with ``resample_every > 0``) advances its draws once per batched evaluation, shared by the restarts.
 """
 
 from __future__ import annotations
@@ -290,7 +294,7 @@ class _RestartBatch:
         bad = torch.zeros(len(self.active), dtype=torch.bool)
         for p in self.trainable():
             if p.grad is not None:
-                bad |= ~torch.isfinite(p.grad).flatten(start_dim=1).all(-1).cpu()
+                bad |= ~torch.isfinite(p.grad).reshape(len(self.active), -1).all(-1).cpu()
         if bad.any():
             raise _DropRestarts(bad.nonzero().flatten().tolist())
 

@@ -7,6 +7,7 @@ import math
 
 import pytest
 import torch
+from hydra.utils import instantiate
 from torch import nn
 
 from qtl.errors import NonFiniteObjective
@@ -14,7 +15,7 @@ from qtl.gaussian import Gaussian, GaussianMap
 from qtl.policies import Policy, RBFPolicy, SquashedPolicy
 from qtl.policy_search import AdamSearch, LBFGSSearch
 from qtl.propagation import MomentMatching
-from tests.helpers import quadratic_reward
+from tests.helpers import quadratic_reward, train_config
 
 
 class Point(nn.Module):
@@ -220,3 +221,11 @@ def test_batched_search_needs_a_policy_and_one_value_per_restart():
     with pytest.raises(ValueError, match="one predicted return per restart"):
         LBFGSSearch(restarts=2, batched=True)(policy, lambda: policy.value().sum())
     assert policy.batch_shape == () and policy.x.shape == (2,)  # put back after a failure too
+
+
+@pytest.mark.parametrize(("option", "target"), [("lbfgs", LBFGSSearch), ("adam", AdamSearch)])
+def test_config_chooses_batched_restarts(option, target):
+    """``optimizer.batched`` is a typed key of both options, false unless set."""
+    assert instantiate(train_config(f"optimizer={option}").optimizer).batched is False
+    search = instantiate(train_config(f"optimizer={option}", "optimizer.batched=true").optimizer)
+    assert isinstance(search, target) and search.batched is True
