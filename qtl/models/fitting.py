@@ -75,11 +75,11 @@ class ExactFit:
     ) -> DynamicsGP:
         """The exact GP on inputs `n x (F+U)`, targets `n x E`, fitted from ``start`` (None: PILCO's heuristic).
 
-        ``warm_start`` and a ``previous`` fit: from its θ_p, ``start`` being the cold start of the
-        outputs the warm fit leaves short (:meth:`DynamicsGP.fit_warm`).
+        ``warm_start`` and a ``previous`` fit of at least half these tuples: from its θ_p, ``start``
+        being the cold start of the outputs the warm fit leaves short (:meth:`DynamicsGP.fit_warm`).
         """
         model = DynamicsGP(inputs, targets, hyperparameters=start, dtype=inputs.dtype)
-        if self.warm_start and previous is not None:
+        if self.warm_start and previous is not None and previous.speaks_for(len(inputs)):
             previous = previous.to(inputs.dtype, inputs.device)
             model.fit_warm(previous.theta, previous.objective, restarts=self.restarts, max_iter=self.max_iter,
                            generator=generator)
@@ -112,14 +112,14 @@ class SparseFit:
     ) -> DynamicsGP:
         """The sparse GP on inputs `n x (F+U)`, targets `n x E`; ``generator`` draws Z, then the restarts.
 
-        ``warm_start`` and a ``previous`` fit: from its θ_p, and its Z where the data only grew and
-        the number of inducing inputs is the same (:meth:`SparseDynamicsGP.fit_warm`).
+        ``warm_start`` and a ``previous`` fit of at least half these tuples: from its θ_p, and its Z
+        where the data only grew and the number of inducing inputs is the same (:meth:`SparseDynamicsGP.fit_warm`).
         """
         model = SparseDynamicsGP(inputs, targets, hyperparameters=start, num_inducing=self.inducing,
                                  generator=generator, dtype=inputs.dtype)
-        if self.warm_start and previous is not None:
+        if self.warm_start and previous is not None and previous.speaks_for(len(inputs)):
             previous = previous.to(inputs.dtype, inputs.device)
-            inducing = previous.inducing if previous.num_points <= len(inputs) else None
+            inducing = previous.inducing if previous.num_points <= len(inputs) else None  # data only grew
             model.fit_warm(previous.theta, previous.objective, inducing=inducing, restarts=self.restarts,
                            max_iter=self.max_iter, generator=generator)
         else:

@@ -12,6 +12,11 @@ from qtl.models.dynamics_gp import DynamicsGP
 from qtl.models.hyperparameters import GPHyperparameters
 from qtl.models.sparse_gp import SparseDynamicsGP
 
+# The previous fit must have seen at least this share of the current data to start from: on the bench data
+# (docs/benchmarks.md, GP section) a θ_p of 10 points left the warm fit of 60 points 0.3-1.3 nats per point
+# short of the cold fit, one of 50 points at n = 100 within 1e-3, and its objective was no guide to either.
+WARM_MIN_SHARE = 0.5
+
 
 @dataclass(frozen=True)
 class PreviousFit:
@@ -29,6 +34,10 @@ class PreviousFit:
             raise ValueError("the model has not been fitted: no objective to start the next fit from")
         inducing = model.inducing_points.clone() if isinstance(model, SparseDynamicsGP) else None
         return cls(model.hyperparameters, model.fit_objective.clone(), len(model.train_x), inducing)
+
+    def speaks_for(self, num_points: int) -> bool:
+        """Whether this fit saw enough of ``num_points`` (``WARM_MIN_SHARE``) for the next fit to start from it."""
+        return self.num_points >= WARM_MIN_SHARE * num_points
 
     def to(self, dtype: torch.dtype, device: torch.device | str) -> PreviousFit:
         """The same fit on another dtype and device."""

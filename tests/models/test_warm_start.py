@@ -120,6 +120,15 @@ def test_warm_start_off_ignores_the_previous_fit_and_on_uses_it(data, previous):
     assert_same_theta(first.hyperparameters, plain.hyperparameters)  # no previous fit: the cold fit
 
 
+def test_a_previous_fit_of_less_than_half_the_data_is_not_started_from(data, previous):
+    x, y = data
+    cold = ExactFit(restarts=2, max_iter=MAX_ITER).fit(x, y, generator=generator())
+    few = PreviousFit(previous.theta, previous.objective, num_points=N // 2 - 1)
+    assert previous.speaks_for(N) and not few.speaks_for(N)
+    fitted = ExactFit(restarts=2, max_iter=MAX_ITER, warm_start=True).fit(x, y, generator=generator(), previous=few)
+    assert_same_theta(fitted.hyperparameters, cold.hyperparameters)
+
+
 def test_the_sparse_warm_fit_starts_from_the_previous_inducing_inputs(data, monkeypatch):
     x, y = data
     before = SparseFit(restarts=1, max_iter=MAX_ITER, inducing=8).fit(x[:-EPISODE], y[:-EPISODE],
