@@ -491,6 +491,17 @@ def markdown(results: list[dict[str, Any]], info: dict[str, Any], comparison: li
     return "\n".join(lines)
 
 
+def compare_only_markdown(info: dict[str, Any], comparison: list[dict[str, Any]]) -> str:
+    """The section of a ``--compare-only`` run: how it was run, then the comparison table."""
+    m = info["machine"]
+    return "\n".join([
+        f"`{info['command']}` — {info['date']}, {m['cpu']} ({m['cores']} cores), {info['threads']} torch threads, "
+        f"torch {m['torch']}. Results: `{info['output']}`.",
+        "",
+        *comparison_markdown(comparison),
+    ])
+
+
 def main() -> None:
     """Fit (or load) one model per n, run every configuration in its own subprocess; write JSON and markdown."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -507,7 +518,8 @@ def main() -> None:
     parser.add_argument("--compare-sizes", type=int, nargs="+", default=COMPARE_SIZES,
                         help="n of the backend x restarts comparison (moment matching, float64)")
     parser.add_argument("--no-compare", action="store_true", help="skip the backend x restarts comparison")
-    parser.add_argument("--compare-only", action="store_true", help="only the backend x restarts comparison")
+    parser.add_argument("--compare-only", action="store_true",
+                        help="only the backend x restarts comparison (its own JSON and docs section: *_compare)")
     parser.add_argument("--overrides", nargs="*", default=[], help="Hydra overrides for every configuration")
     parser.add_argument("--mm-overrides", nargs="*", default=[], help="Hydra overrides for moment matching only")
     parser.add_argument("--particles-overrides", nargs="*", default=[], help="Hydra overrides for particles only")
@@ -522,7 +534,8 @@ def main() -> None:
 
     torch.set_num_threads(args.threads)
     device = resolve_device(args.device)  # a bad or absent device fails here, before any measurement
-    suffix = "" if device.type == "cpu" else f"-{device.type}"
+    # --compare-only writes beside the full run's results and section, never over them.
+    suffix = ("_compare" if args.compare_only else "") + ("" if device.type == "cpu" else f"-{device.type}")
     output = (args.output or DEFAULT_OUTPUT.with_stem(DEFAULT_OUTPUT.stem + suffix)).resolve()
     per_propagator = {"moment_matching": args.mm_overrides, "particles": args.particles_overrides}
     data_cfg = compose_config("moment_matching", "float64", args.overrides)
@@ -576,7 +589,7 @@ def main() -> None:
     add_ratios(comparison)
     info["comparison"] = comparison
     benchlib.write_results(output, info, results)
-    section = markdown(results, info, comparison)
+    section = compare_only_markdown(info, comparison) if args.compare_only else markdown(results, info, comparison)
     if not args.no_docs:
         benchlib.write_section(SECTION + suffix, section)
     print(section)
