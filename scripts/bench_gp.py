@@ -166,7 +166,10 @@ def main() -> None:
         print(f"n={n}: {cold}warm {r['warm_s']:.1f} s ({mean(r['warm_objective']):.4f}), "
               f"{r['warm_runs']} warm L-BFGS run(s)", flush=True)
 
-    info = {"date": benchlib.today(), "command": benchlib.command_line(), "machine": benchlib.machine(),
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=benchlib.ROOT, capture_output=True,
+                            text=True).stdout.strip() or "unknown"
+    info = {"date": benchlib.today(), "command": benchlib.command_line(), "commit": commit,
+            "machine": benchlib.machine(),
             "machine_name": args.machine, "threads": args.threads, "load_average_at_start": load}
     benchlib.write_results(args.output, info, rows)
     if args.no_docs:
@@ -176,9 +179,10 @@ def main() -> None:
     lines = [
         "## GP dynamics model: evidence maximisation, cold and warm",
         "",
-        f"`{info['command']}` — {info['date']}, {name}, {args.threads} torch threads, torch {m['torch']}, "
-        f"float64, load average {load:.2f} at the start. E = {OUTPUTS} outputs, D = {INPUT_DIM} inputs, "
-        f"{rows[0]['restarts']} restarts × ≤ {rows[0]['max_iter']} L-BFGS iterations, exact Cholesky throughout. "
+        f"`{info['command']}` at commit {commit} — {info['date']}, {name}, {args.threads} torch threads, "
+        f"torch {m['torch']}, float64, load average {load:.2f} at the start. E = {OUTPUTS} outputs, "
+        f"D = {INPUT_DIM} inputs, {rows[0]['restarts']} restarts × ≤ {rows[0]['max_iter']} L-BFGS iterations, "
+        "exact Cholesky throughout. "
         f"Results: `{benchlib.display_path(args.output)}`.",
         "",
         "*Cold* is today's default fit (`model.warm_start=false`): PILCO's heuristic θ, then the perturbed "
