@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shlex
 import subprocess
 import sys
 import time
@@ -32,6 +33,7 @@ INPUT_DIM, OUTPUTS = 6, 4
 NOISE_STD = 0.05
 EPISODE = 50  # T: points of the last episode (the cart-pole horizon)
 EVIDENCE_EVALS = 5
+COLD_2000_S = 541.9  # the cold fit at n = 2000, measured by this script on 2026-11-21 (docs/bench/gp.json then)
 
 
 def run_one(n: int, threads: int, seed: int, cold: bool) -> dict:
@@ -135,7 +137,14 @@ def evidence(rows: list[dict]) -> str:
             f"from the previous fit's (the restart rule's reference; tolerance {rows[0]['tolerance']})")
     if cold_gain:
         text += f", and the cold fit beat it by at most {max(cold_gain):+.5f} per point"
-    return text + f"; cold restarts ran at {restarted} of {len(rows)} sizes."
+    text += f"; cold restarts ran at {restarted} of {len(rows)} sizes."
+    ratios = [r["stacked_restarts_eval_s"] / r["sequential_restarts_eval_s"] for r in rows]
+    text += (f" Stacking the restarts as one batch took {min(ratios):.2f}-{max(ratios):.2f}x the time of running "
+             "them one after another, per evaluation")
+    if min(ratios) >= 0.8:
+        return text + (": the cost is the E·R Cholesky factorisations either way, and one L-BFGS over the stack "
+                       "would share its line searches, so the restarts stay sequential (the warm fit seldom runs any).")
+    return text + "."
 
 
 def main() -> None:
@@ -149,7 +158,12 @@ def main() -> None:
     parser.add_argument("--no-docs", action="store_true", help="do not rewrite the section of docs/benchmarks.md")
     parser.add_argument("--one", type=int, help=argparse.SUPPRESS)  # child process: one size
     parser.add_argument("--cold", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--docs-only", action="store_true", help="rewrite the docs section from --output only")
     args = parser.parse_args()
+    if args.docs_only:
+        saved = json.loads(args.output.read_text())
+        write_docs(saved, saved.pop("results"), args.output)
+        return
     if args.one is not None:
         print(json.dumps(run_one(args.one, args.threads, args.seed, args.cold)))
         return
@@ -168,22 +182,26 @@ def main() -> None:
 
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=benchlib.ROOT, capture_output=True,
                             text=True).stdout.strip() or "unknown"
-    info = {"date": benchlib.today(), "command": benchlib.command_line(), "commit": commit,
+    command = " ".join(["python", "scripts/bench_gp.py", *map(shlex.quote, sys.argv[1:])])
+    info = {"date": benchlib.today(), "command": command, "commit": commit,
             "machine": benchlib.machine(),
             "machine_name": args.machine, "threads": args.threads, "load_average_at_start": load}
     benchlib.write_results(args.output, info, rows)
-    if args.no_docs:
-        return
+    if not args.no_docs:
+        write_docs(info, rows, args.output)
+
+
+def write_docs(info: dict, rows: list[dict], output: Path) -> None:
+    """The GP section of ``docs/benchmarks.md`` from the results."""
     m = info["machine"]
-    name = args.machine or f"{m['cpu']} ({m['cores']} cores)"
+    name = info["machine_name"] or f"{m['cpu']} ({m['cores']} cores)"
     lines = [
         "## GP dynamics model: evidence maximisation, cold and warm",
         "",
-        f"`{info['command']}` at commit {commit} — {info['date']}, {name}, {args.threads} torch threads, "
-        f"torch {m['torch']}, float64, load average {load:.2f} at the start. E = {OUTPUTS} outputs, "
-        f"D = {INPUT_DIM} inputs, {rows[0]['restarts']} restarts × ≤ {rows[0]['max_iter']} L-BFGS iterations, "
-        "exact Cholesky throughout. "
-        f"Results: `{benchlib.display_path(args.output)}`.",
+        f"`{info['command']}` at commit {info['commit']} — {info['date']}, {name}, {info['threads']} torch threads, "
+        f"torch {m['torch']}, float64, load average {info['load_average_at_start']:.2f} at the start. "
+        f"E = {OUTPUTS} outputs, D = {INPUT_DIM} inputs, {rows[0]['restarts']} restarts × ≤ {rows[0]['max_iter']} "
+        f"L-BFGS iterations, exact Cholesky throughout. Results: `{benchlib.display_path(output)}`.",
         "",
         "*Cold* is today's default fit (`model.warm_start=false`): PILCO's heuristic θ, then the perturbed "
         f"restarts. *Warm* (`model.warm_start=true`) starts from θ_p of the same data less its last episode "
@@ -197,6 +215,9 @@ def main() -> None:
         "",
         evidence(rows),
     ]
+    if any("cold_s" not in r for r in rows):
+        lines += ["", "Cold fits run at the `--cold-sizes` only (the default leaves out n = 2000, where the cold fit "
+                  f"alone took {COLD_2000_S} s in this script's run of 2026-11-21 on the same VM)."]
     benchlib.write_section("bench_gp", "\n".join(lines))
 
 

@@ -34,7 +34,9 @@ class ModelFit(Protocol):
     ) -> DynamicsGP:
         """θ_p by evidence maximisation on inputs `n x (F+U)` and targets Δ `n x E`, from ``start`` or the heuristic.
 
-        With ``warm_start`` on, from the ``previous`` episode's fit where there is one.
+        With ``warm_start`` on, from the ``previous`` episode's fit where there is one; ``start`` (θ_s of the
+        free rule, else None) then is the cold start of the restarts only. So a free-rule run's first fit
+        starts from θ_s and each later one from θ_p_{i−1}, itself re-learned from θ_s.
         """
         ...
 
