@@ -2,8 +2,9 @@
 
 At the sizes moment matching uses (P = 10 output pairs, K = 8, n = 250, 500, 1000; alone and with
 R = 3 restarts batched over a broadcast W `P x n x n`): the forward pass, and forward plus the
-gradients for A and B (W fixed, as for the GP dynamics). Then one moment-matching rollout plus its
-policy gradient at n = 250 (E = 4, GP input 6-D; `bench_rollout.py`'s case) under each backend.
+gradients for A and B (W fixed, as for the GP dynamics; the native forward then forms them too).
+Then one moment-matching rollout plus its policy gradient at n = 250 (E = 4, GP input 6-D;
+`bench_rollout.py`'s case) under each backend.
 Medians of the repeats after one warm-up, 2 torch threads. Writes `docs/bench_kernels.json` and
 its section of `docs/benchmarks.md`.
 
@@ -105,7 +106,8 @@ def markdown(info: dict, rows: list[dict], rollout: dict) -> str:
         "",
         f"Σ_ij W_ij exp((A Bᵀ)_ij) at moment matching's sizes: P = {PAIRS} output pairs, K = {FEATURES}, "
         "A and B `[R x] P x n x K`, W `P x n x n` (broadcast over R restarts), float64; "
-        "forward, and forward plus the gradients for A and B (W fixed, as for the GP dynamics). "
+        "forward, and forward plus the gradients for A and B (W fixed, as for the GP dynamics: the native "
+        "kernel then forms them in its forward pass, and its backward is two products). "
         f"Median of {info['repeats']} after one warm-up, {THREADS} torch threads, both backends in one run. "
         "Speed-up = torch time / native time.",
         "",
