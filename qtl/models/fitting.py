@@ -81,13 +81,20 @@ class ExactFit:
         being the cold start of the outputs the warm fit leaves short (:meth:`DynamicsGP.fit_warm`).
         """
         model = DynamicsGP(inputs, targets, hyperparameters=start, dtype=inputs.dtype)
-        if self.warm_start and previous is not None and previous.speaks_for(len(inputs)):
-            previous = previous.to(inputs.dtype, inputs.device)
-            model.fit_warm(previous.theta, previous.objective, restarts=self.restarts, max_iter=self.max_iter,
+        warm = _warm_from(previous, inputs) if self.warm_start else None
+        if warm is not None:
+            model.fit_warm(warm.theta, warm.objective, restarts=self.restarts, max_iter=self.max_iter,
                            generator=generator)
         else:
             model.fit(restarts=self.restarts, max_iter=self.max_iter, generator=generator)
         return model
+
+
+def _warm_from(previous: PreviousFit | None, inputs: Tensor) -> PreviousFit | None:
+    """The previous fit on the device and dtype of ``inputs`` when it saw enough of them to start from, else None."""
+    if previous is None or not previous.speaks_for(len(inputs)):
+        return None
+    return previous.to(inputs.dtype, inputs.device)
 
 
 @dataclass(frozen=True)
@@ -119,10 +126,10 @@ class SparseFit:
         """
         model = SparseDynamicsGP(inputs, targets, hyperparameters=start, num_inducing=self.inducing,
                                  generator=generator, dtype=inputs.dtype)
-        if self.warm_start and previous is not None and previous.speaks_for(len(inputs)):
-            previous = previous.to(inputs.dtype, inputs.device)
-            inducing = previous.inducing if previous.num_points <= len(inputs) else None  # data only grew
-            model.fit_warm(previous.theta, previous.objective, inducing=inducing, restarts=self.restarts,
+        warm = _warm_from(previous, inputs) if self.warm_start else None
+        if warm is not None:
+            inducing = warm.inducing if warm.num_points <= len(inputs) else None  # data only grew
+            model.fit_warm(warm.theta, warm.objective, inducing=inducing, restarts=self.restarts,
                            max_iter=self.max_iter, generator=generator)
         else:
             model.fit(restarts=self.restarts, max_iter=self.max_iter, generator=generator)
