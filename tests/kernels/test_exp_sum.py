@@ -14,7 +14,6 @@ from torch import Tensor
 from qtl.errors import UserError
 from qtl.gaussian import Gaussian
 from qtl.kernels import SEKernelMoments, exp_sum, weighted_exp_sum
-from qtl.kernels.native import build as native_build
 from qtl.kernels.native import library as native_library
 
 DTYPE = torch.float64
@@ -34,17 +33,6 @@ SMALL = ((2, 3), (2, 3), (3,), 5, 6)  # batches of A, B, W and n, m for the K sw
 # Which of A, B, W need a gradient: every non-empty combination. Without W the native forward also
 # forms the A/B gradients (G_A, G_B); with W its backward recomputes exp(A Bᵀ).
 WANTS = [want for want in itertools.product((True, False), repeat=3) if any(want)]
-
-
-@pytest.fixture(scope="module")
-def built() -> Path:
-    """The native kernel, built (or found in the cache); skipped where no compiler is found."""
-    try:
-        return native_build.build()
-    except native_build.BuildError as err:
-        if "cannot run" in str(err):
-            pytest.skip(f"no C compiler: {err}")
-        raise
 
 
 @pytest.fixture
