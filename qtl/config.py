@@ -357,8 +357,8 @@ class KernelsConfig:
     """How the shared kernel maths runs (``qtl.kernels``)."""
 
     backend: str = field(
-        default="auto",
-        metadata=doc("auto | native | torch: the fused exp sums of moment matching (native: C, CPU float64; "
+        default="torch",
+        metadata=doc("torch | auto | native: the fused exp sums of moment matching (native: C, CPU float64; "
                      "auto: native when built, else torch)"),
     )
 

@@ -126,8 +126,8 @@ def test_kernels_backend_is_chosen_in_build_and_a_bad_one_is_refused():
     except ImportError:
         expected = "torch"
     try:
-        assert build(tiny_config("kernels.backend=torch")).kernel_backend == "torch" == active_backend()
-        assert build(tiny_config()).kernel_backend == expected  # the default: auto
+        assert build(tiny_config("kernels.backend=auto")).kernel_backend == expected == active_backend()
+        assert build(tiny_config()).kernel_backend == "torch" == active_backend()  # the default
         with pytest.raises(UserError, match=r"kernels\.backend must be one of"):
             build(tiny_config("kernels.backend=cuda"))
     finally:
