@@ -10,6 +10,7 @@ import torch
 from qtl.gaussian import Gaussian
 from qtl.policies import LinearPolicy, Policy, RBFPolicy, batched_policy, restart_state, set_psi, stack_psi
 from tests.policies.test_policies import KINDS, make_policy
+from tests.propagation.restarts import spread_restarts as spread
 
 DTYPE = torch.float64
 RESTARTS = 3
@@ -19,12 +20,7 @@ RTOL, ATOL = 1e-10, 1e-13
 
 def spread_restarts(policy: Policy, restarts: int = RESTARTS, seed: int = 0) -> Policy:
     """A batched copy of ``policy`` whose restarts r > 0 are moved away from restart 0, so that they differ."""
-    batched = batched_policy(policy, restarts)
-    gen = torch.Generator().manual_seed(seed)
-    with torch.no_grad():
-        for p in batched.parameters():
-            p[1:].add_(0.3 * torch.randn(p[1:].shape, generator=gen, dtype=p.dtype))
-    return batched
+    return spread(policy, restarts, seed, scale=0.3)
 
 
 def per_restart(batched: Policy, like: Policy, restart: int) -> Policy:

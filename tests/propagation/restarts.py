@@ -15,13 +15,13 @@ RESTARTS = 3
 RESTART_RTOL = 1e-10
 
 
-def spread_restarts(policy: Policy, restarts: int = RESTARTS, seed: int = 0) -> Policy:
-    """A batched copy of ``policy`` whose restarts r > 0 are moved away from restart 0."""
+def spread_restarts(policy: Policy, restarts: int = RESTARTS, seed: int = 0, scale: float = 0.2) -> Policy:
+    """A batched copy of ``policy`` whose restarts r > 0 are moved away from restart 0 by ``scale`` · N(0, I)."""
     batched = batched_policy(policy, restarts)
     gen = torch.Generator().manual_seed(seed)
     with torch.no_grad():
         for p in batched.parameters():
-            p[1:].add_(0.2 * torch.randn(p[1:].shape, generator=gen, dtype=p.dtype))
+            p[1:].add_(scale * torch.randn(p[1:].shape, generator=gen, dtype=p.dtype))
     return batched
 
 
