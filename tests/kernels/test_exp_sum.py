@@ -20,7 +20,9 @@ DTYPE = torch.float64
 RTOL = 1e-12  # native vs torch, relative, float64
 
 # (batch of A, batch of B, batch of W, n, m, K): odd n, n below a tile, n != m, n and m across the
-# kernel's row split (256) and column chunk (512), broadcast A or W (W `P x n x m` under `R x P`).
+# kernel's row split (256) and column chunk (128), n not a multiple of its row block (8 with AVX-512)
+# and m not one of its vector width (8), K below, at and above that width, broadcast A or W (W
+# `P x n x m` under `R x P`).
 SHAPES = [
     ((), (), (), 1, 1, 1),
     ((3,), (3,), (3,), 7, 5, 2),
@@ -109,7 +111,7 @@ def test_native_equals_torch(built, shape, seed, want):
         assert_relative(got, want_, mag, f"{shape} {what}")
 
 
-@pytest.mark.parametrize("k", range(1, 10))
+@pytest.mark.parametrize("k", [*range(1, 10), 16, 17])  # K > 8: one pass of the A/B gradients per 8 k's
 def test_native_equals_torch_for_every_k(built, k):
     a, b, w = operands((*SMALL, k), k, requires_grad=True)
     w = w.detach().abs().requires_grad_()  # positive weights: entrywise relative errors

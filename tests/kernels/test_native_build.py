@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+import platform
 import shutil
+
+import pytest
 
 from qtl.kernels.native import artefact
 from qtl.kernels.native import build as native_build
+from qtl.kernels.native.library import ExpSumLibrary
 
 
 def test_a_second_build_is_a_cache_hit(built):
@@ -38,3 +42,21 @@ def test_a_failed_build_keeps_the_kernel_and_says_torch_once(built, monkeypatch,
     assert len(err) == 1 and "torch path" in err[0] and "/nonexistent/cc" in err[0]
     assert native_build.main(["--force"]) == 1
     assert built.is_file()  # the cached kernel is untouched by a failed rebuild
+
+
+# The kernel's vector width follows the CPU it is compiled for: AVX-512 (8 doubles), AVX (4) or
+# the baseline ISA (2). The build machine has one of them; compile the narrower ones on purpose.
+NARROWER = {
+    "baseline": lambda flags: tuple(f for f in flags if f != "-march=native"),
+    "avx2": lambda flags: (*flags, "-mno-avx512f"),
+}
+
+
+@pytest.mark.parametrize("isa", sorted(NARROWER))
+def test_narrower_vector_builds_agree_with_torch(built, isa, monkeypatch, tmp_path):
+    if isa == "avx2" and platform.machine() not in ("x86_64", "AMD64"):
+        pytest.skip("-mno-avx512f is an x86-64 flag")
+    monkeypatch.setattr(native_build, "FLAGS", NARROWER[isa](native_build.FLAGS))
+    target = tmp_path / f"exp_sum_{isa}.so"
+    native_build.compile_kernel(target)
+    native_build.check_against_torch(ExpSumLibrary(target))  # raises BuildError when it disagrees

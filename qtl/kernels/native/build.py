@@ -22,7 +22,7 @@ import torch
 
 from qtl.kernels.native.artefact import ARTEFACT_PREFIX, COMPILER, FLAGS, LIBS, SOURCE, artefact_path
 from qtl.kernels.native.exp_sum import NativeWeightedExpSum
-from qtl.kernels.native.library import load_exp_sum
+from qtl.kernels.native.library import ExpSumLibrary, load_exp_sum
 
 logger = logging.getLogger(__name__)
 
@@ -49,19 +49,21 @@ def compile_kernel(target: Path) -> None:
     os.replace(tmp, target)
 
 
-def check_against_torch() -> None:
-    """The built kernel's value and gradients equal the plain torch formula on a small odd-shaped problem.
+def check_against_torch(library: ExpSumLibrary | None = None) -> None:
+    """The kernel's value and gradients equal the plain torch formula on a small odd-shaped problem.
 
     A and B `2 x 3 x n x K`, W `3 x n x m` broadcast over the leading dimension (as for restarts);
     once with W needing a gradient (backward recomputes) and once without (forward forms G_A, G_B).
+    ``library``: the kernel to check (default: the one built for this source and CPU).
     """
+    library = library or load_exp_sum()
     gen = torch.Generator().manual_seed(0)
     a = (0.3 * torch.randn(2, 3, 37, 5, generator=gen, dtype=torch.float64)).requires_grad_()
     b = (0.3 * torch.randn(2, 3, 41, 5, generator=gen, dtype=torch.float64)).requires_grad_()
     w = torch.rand(3, 37, 41, generator=gen, dtype=torch.float64)
     for operands in ((a, b, w.requires_grad_()), (a, b, w.detach())):
         wanted = tuple(t for t in operands if t.requires_grad)
-        native = NativeWeightedExpSum.apply(a, b, operands[2].expand(2, -1, -1, -1), load_exp_sum(), True)
+        native = NativeWeightedExpSum.apply(a, b, operands[2].expand(2, -1, -1, -1), library, True)
         reference = (operands[2] * torch.exp(a @ b.mT)).sum((-2, -1))
         for got, want in zip(
             (native, *torch.autograd.grad(native.sum(), wanted)),

@@ -18,28 +18,61 @@
  *
  * Work: one unit = (batch item, SPLIT_ROWS rows of A); units run in parallel under OpenMP with
  * the thread count passed per call (torch.get_num_threads()), items in the order `order` (the
- * caller groups the items that share a W, so that a broadcast W is read while still in cache). Inside a unit, B is taken in
- * chunks of CHUNK_COLS rows, transposed once into a K x CHUNK_COLS tile (L1/L2-resident), and
- * each row of A forms S_i,chunk, exp, weight and sum in one pass over that tile: exp(A B^T) is
- * never stored. Each unit writes its own partial sum and its own partial G_B or dL/dB (one
- * buffer per unit, not per thread); partials are added in split order afterwards, so results are
- * bit-identical run after run and for any thread count.
+ * caller groups the items that share a W, so that a broadcast W is read while still in cache).
+ * Inside a unit, B is taken in chunks of CHUNK_COLS rows, copied once into two L1/L2-resident
+ * tiles: transposed (`K x CHUNK_COLS`, columns padded with zeros to a multiple of LANES) and row by
+ * row with each row's K padded with zeros to a multiple of LANES. A is taken BLOCK_ROWS rows at a
+ * time (a short last block padded with zero rows; the next block's W rows are prefetched), and each
+ * (row block, chunk) goes in four steps:
+ *   1. S for BLOCK_ROWS rows x LANES columns at a time, in registers (the columns are the vector
+ *      lanes, the rows BLOCK_ROWS accumulators, the transposed tile's columns loaded once per k);
+ *   2. exp over the block's S, one contiguous loop through libmvec's 8-wide exp;
+ *   3. times W (and the backward's g), summed; dL/dW written; padded rows set to 0;
+ *   4. G_A and G_B, column by column: G_A[i] += P_ij B_j for the block's rows (BLOCK_ROWS
+ *      accumulators of LANES k's in registers) and G_B[j] += sum_i P_ij A_i (one register), with
+ *      P = W E; K > LANES takes one such pass per LANES k's.
+ * exp(A B^T) is never stored beyond one block. Each unit writes its own partial sum and its own
+ * partial G_B or dL/dB (one buffer per unit, not per thread); partials are added in split order
+ * afterwards, so results are bit-identical run after run and for any thread count.
  *
  * Build (qtl/kernels/native/build.py, `python -m qtl.kernels.native.build`, run by
  * scripts/setup.sh; cached by a hash of this file, the flags and the CPU):
  *   gcc -O3 -march=native -fno-math-errno -fopenmp -fPIC -shared -Wall -Wextra exp_sum.c -lm
- * exp is declared `omp declare simd` below, so gcc vectorises the exp loops through glibc's
- * libmvec (_ZGVeN8v_exp with AVX-512, _ZGVdN4v_exp with AVX2) without -ffast-math; libmvec's
- * exp is within 4 ulp, and the sums agree with the torch twin to ~1e-15 relative (see
- * tests/kernels/test_exp_sum.py). Loaded through ctypes after torch, so it shares torch's libgomp.
+ * The register tiles are GNU C vectors of LANES doubles, one register of the CPU compiled for (8
+ * with AVX-512, 4 with AVX, 2 otherwise). exp is declared `omp declare simd` below, so gcc
+ * vectorises the exp loop, LANES at a time, through glibc's libmvec (_ZGVeN8v_exp, _ZGVdN4v_exp,
+ * _ZGVbN2v_exp) without -ffast-math; libmvec's exp is within 4 ulp, and the sums agree with the
+ * torch twin to ~1e-15 relative (see tests/kernels/test_exp_sum.py). Loaded through ctypes after
+ * torch, so it shares torch's libgomp.
  */
 #include <math.h>
 #include <stdint.h>
 #include <stdlib.h>
 #include <string.h>
 
-#define SPLIT_ROWS 256
-#define CHUNK_COLS 512
+#define SPLIT_ROWS 256 /* rows of A per work unit (a multiple of BLOCK_ROWS) */
+#define CHUNK_COLS 128 /* rows of B per tile (a multiple of LANES; the tiles then fit L1) */
+/* LANES: doubles per vector register; BLOCK_ROWS: rows of A per register block (block_grads keeps
+ * 2 BLOCK_ROWS + 2 vectors live: 18 of AVX-512's 32 registers, 10 of AVX's 16). */
+#if defined(__AVX512F__)
+#define LANES 8
+#define BLOCK_ROWS 8
+#elif defined(__AVX__)
+#define LANES 4
+#define BLOCK_ROWS 4
+#else
+#define LANES 2
+#define BLOCK_ROWS 4
+#endif
+#define ALIGN 64 /* bytes: the tiles' alignment (at least a vector's) */
+
+/* Before a loop over a block's rows: unrolled, so that its vectors stay in registers. */
+#define FULLY_UNROLLED _Pragma("GCC unroll 16")
+_Static_assert(BLOCK_ROWS <= 16, "FULLY_UNROLLED unrolls up to 16 rows");
+_Static_assert(SPLIT_ROWS % BLOCK_ROWS == 0 && CHUNK_COLS % LANES == 0, "blocks tile units, lanes tile chunks");
+_Static_assert(ALIGN % (LANES * sizeof(double)) == 0, "the tiles are aligned for vector loads");
+
+typedef double vec __attribute__((vector_size(LANES * sizeof(double))));
 
 /* The vector variants of exp exist in libmvec; glibc only announces them under -ffast-math. */
 #pragma omp declare simd notinbranch
@@ -48,6 +81,8 @@ extern double exp(double);
 static int64_t num_splits(int64_t n) { return (n + SPLIT_ROWS - 1) / SPLIT_ROWS; }
 
 static int64_t min64(int64_t x, int64_t y) { return x < y ? x : y; }
+
+static int64_t round_up(int64_t x) { return (x + LANES - 1) / LANES * LANES; }
 
 /* Inside a parallel region: whether every thread got its scratch memory (a barrier, so that all
  * threads take the same branch around the work-sharing loops that follow). */
@@ -64,94 +99,193 @@ static int all_allocated(int mine_failed, int *failed)
     return !any_failed;
 }
 
-/* tile[kk * CHUNK_COLS + jj] = b[jj * k + kk] for jj < cols. */
-static void transpose_chunk(const double *b, int64_t cols, int64_t k, double *tile)
+/* One thread's tiles (ALIGN-aligned); kp = K rounded up to LANES. */
+struct scratch {
+    int64_t kp;
+    double *b_t;   /* `K x CHUNK_COLS`: the chunk of B transposed, padded columns 0 */
+    double *b_row; /* `CHUNK_COLS x kp`: the chunk of B, each row's K padded with 0 */
+    double *g_b;   /* `CHUNK_COLS x kp`: the chunk's G_B, summed over the unit's rows */
+    double *a_row; /* `BLOCK_ROWS x kp`: the block of A, padded rows and K 0 */
+    double *g_a;   /* `BLOCK_ROWS x kp`: the block's G_A over the chunk */
+    double *e;     /* `BLOCK_ROWS x cols`: S, then E, then P = W E (cols = the chunk's padded width) */
+};
+
+static double *alloc_aligned(int64_t count)
 {
-    for (int64_t jj = 0; jj < cols; ++jj)
-        for (int64_t kk = 0; kk < k; ++kk)
-            tile[kk * CHUNK_COLS + jj] = b[jj * k + kk];
+    const size_t bytes = (size_t)(count > 0 ? count : 1) * sizeof(double);
+    return aligned_alloc(ALIGN, (bytes + ALIGN - 1) / ALIGN * ALIGN);
 }
 
-/* s[jj] = sum_kk a_i[kk] tile[kk][jj]: one row of S over the chunk. */
-static void row_of_s(const double *a_i, const double *tile, int64_t cols, int64_t k, double *s)
+/* Allocates a thread's tiles for K = k; returns 0, or 1 when memory is short (then free_scratch). */
+static int alloc_scratch(struct scratch *sc, int64_t k)
 {
+    sc->kp = round_up(k > 0 ? k : 1);
+    sc->b_t = alloc_aligned(k * CHUNK_COLS);
+    sc->b_row = alloc_aligned(CHUNK_COLS * sc->kp);
+    sc->g_b = alloc_aligned(CHUNK_COLS * sc->kp);
+    sc->a_row = alloc_aligned(BLOCK_ROWS * sc->kp);
+    sc->g_a = alloc_aligned(BLOCK_ROWS * sc->kp);
+    sc->e = alloc_aligned(BLOCK_ROWS * CHUNK_COLS);
+    return !sc->b_t || !sc->b_row || !sc->g_b || !sc->a_row || !sc->g_a || !sc->e;
+}
+
+static void free_scratch(struct scratch *sc)
+{
+    free(sc->b_t);
+    free(sc->b_row);
+    free(sc->g_b);
+    free(sc->a_row);
+    free(sc->g_a);
+    free(sc->e);
+}
+
+/* The tiles of B's rows [0, cols) (b: the chunk's first row): b_t and b_row, zero-padded. */
+static void load_chunk(const double *b, int64_t cols, int64_t k, struct scratch *sc)
+{
+    const int64_t cols_p = round_up(cols), kp = sc->kp;
+    memset(sc->b_row, 0, (size_t)(cols_p * kp) * sizeof(double));
     for (int64_t jj = 0; jj < cols; ++jj)
-        s[jj] = 0.0;
+        memcpy(sc->b_row + jj * kp, b + jj * k, (size_t)k * sizeof(double));
     for (int64_t kk = 0; kk < k; ++kk) {
-        const double coef = a_i[kk];
-        const double *t = tile + kk * CHUNK_COLS;
-#pragma omp simd
+        double *t = sc->b_t + kk * CHUNK_COLS;
         for (int64_t jj = 0; jj < cols; ++jj)
-            s[jj] += coef * t[jj];
+            t[jj] = b[jj * k + kk];
+        for (int64_t jj = cols; jj < cols_p; ++jj)
+            t[jj] = 0.0;
     }
 }
 
-/* Rows [row0, row1) of `grad_a` += sum_j s_j B_j over the chunk, and `grad_tile` (K x CHUNK_COLS,
- * transposed) += sum_i s_j A_i, for s = one row's weighted exps; either may be NULL. */
-static void accumulate_row(const double *a_i, const double *s, const double *tile, int64_t cols, int64_t k,
-                           double *grad_a_i, double *grad_tile)
+/* a_row = A's rows [0, rows) (a: the block's first row), then zero rows up to BLOCK_ROWS. */
+static void load_block(const double *a, int64_t rows, int64_t k, struct scratch *sc)
 {
-    if (grad_a_i)
+    memset(sc->a_row, 0, (size_t)(BLOCK_ROWS * sc->kp) * sizeof(double));
+    for (int64_t r = 0; r < rows; ++r)
+        memcpy(sc->a_row + r * sc->kp, a + r * k, (size_t)k * sizeof(double));
+}
+
+/* Asks for `rows` rows of W's `cols` columns from w on (the next block's) to be read into cache. */
+static void prefetch_rows(const double *w, int64_t rows, int64_t m, int64_t cols)
+{
+    for (int64_t r = 0; r < rows; ++r)
+        for (int64_t jj = 0; jj < cols; jj += ALIGN / sizeof(double))
+            __builtin_prefetch(w + r * m + jj, 0, 0);
+}
+
+/* Step 1: e[r][jj] = S = sum_k a_row[r][k] b_t[k][jj] for the block's rows and jj < cols_p. */
+static void block_of_s(const struct scratch *sc, int64_t k, int64_t cols_p)
+{
+    for (int64_t jj = 0; jj < cols_p; jj += LANES) {
+        vec acc[BLOCK_ROWS] = {0};
         for (int64_t kk = 0; kk < k; ++kk) {
-            const double *t = tile + kk * CHUNK_COLS;
-            double acc = 0.0;
+            const vec t = *(const vec *)(sc->b_t + kk * CHUNK_COLS + jj);
+FULLY_UNROLLED
+            for (int r = 0; r < BLOCK_ROWS; ++r)
+                acc[r] += sc->a_row[r * sc->kp + kk] * t;
+        }
+FULLY_UNROLLED
+        for (int r = 0; r < BLOCK_ROWS; ++r)
+            *(vec *)(sc->e + r * cols_p + jj) = acc[r];
+    }
+}
+
+/* Step 2: e = exp(e) over `count` entries (a multiple of LANES), LANES at a time through libmvec. */
+static void exp_in_place(double *e, int64_t count)
+{
+#pragma omp simd simdlen(LANES) aligned(e : ALIGN)
+    for (int64_t idx = 0; idx < count; ++idx)
+        e[idx] = exp(e[idx]); /* E_ij */
+}
+
+/* Step 3 for one row: e = g E (stored into grad_w when wanted), then P = W g E; returns sum_j P. */
+static double weigh_row(double *e, const double *w, double g, int64_t cols, double *grad_w)
+{
+    double acc = 0.0;
 #pragma omp simd reduction(+ : acc)
-            for (int64_t jj = 0; jj < cols; ++jj)
-                acc += s[jj] * t[jj];
-            grad_a_i[kk] += acc;
-        }
-    if (grad_tile)
-        for (int64_t kk = 0; kk < k; ++kk) {
-            const double coef = a_i[kk];
-            double *t = grad_tile + kk * CHUNK_COLS;
+    for (int64_t jj = 0; jj < cols; ++jj) {
+        e[jj] *= g; /* g E_ij (g = 1 in the forward: exact) */
+        acc += w[jj] * e[jj];
+    }
+    if (grad_w)
+        memcpy(grad_w, e, (size_t)cols * sizeof(double));
 #pragma omp simd
-            for (int64_t jj = 0; jj < cols; ++jj)
-                t[jj] += coef * s[jj];
-        }
-}
-
-/* grad_b[c0 + jj][kk] = grad_tile[kk][jj] for jj < cols: a chunk's transposed tile back in place. */
-static void store_chunk(const double *grad_tile, int64_t cols, int64_t k, double *grad_b_chunk)
-{
     for (int64_t jj = 0; jj < cols; ++jj)
-        for (int64_t kk = 0; kk < k; ++kk)
-            grad_b_chunk[jj * k + kk] = grad_tile[kk * CHUNK_COLS + jj];
+        e[jj] *= w[jj]; /* P_ij = g W_ij E_ij */
+    return acc;
 }
 
-/* sum over rows [row0, row1) and all m columns of W_ij exp(S_ij) for one batch item; with g_a
- * (the item's `n x k`) its rows [row0, row1) of G_A, with g_b (this unit's own `m x k`) this unit's
- * G_B, both stored, not added. The sum is formed the same way with or without them. */
-static double forward_unit(const double *a, const double *b, const double *w, int64_t row0, int64_t row1,
-                           int64_t m, int64_t k, double *g_a, double *g_b, double *tile, double *g_tile, double *s)
+/* Step 4 for the k's [v, v + LANES): g_a[r] = sum_jj P[r][jj] B_jj and g_b[jj] += sum_r P[r][jj] A_r. */
+static void block_grads(struct scratch *sc, int64_t v, int64_t cols, int64_t cols_p)
 {
-    if (g_a)
-        memset(g_a + row0 * k, 0, (size_t)((row1 - row0) * k) * sizeof(double));
+    const int64_t kp = sc->kp;
+    vec a[BLOCK_ROWS], g_a[BLOCK_ROWS] = {0};
+FULLY_UNROLLED
+    for (int r = 0; r < BLOCK_ROWS; ++r)
+        a[r] = *(const vec *)(sc->a_row + r * kp + v);
+    for (int64_t jj = 0; jj < cols; ++jj) {
+        const vec b = *(const vec *)(sc->b_row + jj * kp + v);
+        vec *g_b = (vec *)(sc->g_b + jj * kp + v);
+        vec sum = *g_b;
+FULLY_UNROLLED
+        for (int r = 0; r < BLOCK_ROWS; ++r) {
+            const double p = sc->e[r * cols_p + jj];
+            g_a[r] += p * b;
+            sum += p * a[r];
+        }
+        *g_b = sum;
+    }
+FULLY_UNROLLED
+    for (int r = 0; r < BLOCK_ROWS; ++r)
+        *(vec *)(sc->g_a + r * kp + v) = g_a[r];
+}
+
+/* One batch item's operands and the outputs a unit writes (each NULL when not wanted). */
+struct unit {
+    const double *a, *b, *w; /* the item's A `n x k`, B `m x k`, W `n x m` */
+    int64_t m, k;
+    double g;                /* the scale of E: dL/ds in the backward, 1 in the forward */
+    double *g_a;             /* the item's `n x k`: G_A (or dL/dA), rows of this unit stored */
+    double *g_b;             /* this unit's own `m x k`: its G_B (or dL/dB), stored */
+    double *g_w;             /* the item's `n x m`: dL/dW, rows of this unit stored */
+};
+
+/* sum over rows [row0, row1) and all m columns of W_ij g exp(S_ij) for one unit, with its rows of
+ * g_a and its g_b, g_w where wanted. The sum is formed the same way whatever is wanted. */
+static double run_unit(const struct unit *u, int64_t row0, int64_t row1, struct scratch *sc)
+{
+    const int64_t m = u->m, k = u->k, kp = sc->kp;
+    const int grads = u->g_a || u->g_b;
+    if (u->g_a)
+        memset(u->g_a + row0 * k, 0, (size_t)((row1 - row0) * k) * sizeof(double));
     double total = 0.0;
     for (int64_t c0 = 0; c0 < m; c0 += CHUNK_COLS) {
-        const int64_t cols = min64(CHUNK_COLS, m - c0);
-        transpose_chunk(b + c0 * k, cols, k, tile);
-        if (g_b)
-            memset(g_tile, 0, (size_t)(k * CHUNK_COLS) * sizeof(double));
-        for (int64_t i = row0; i < row1; ++i) {
-            row_of_s(a + i * k, tile, cols, k, s);
-            const double *w_i = w + i * m + c0;
-#pragma omp simd
-            for (int64_t jj = 0; jj < cols; ++jj)
-                s[jj] = exp(s[jj]); /* E_ij */
-            double acc = 0.0;
-#pragma omp simd reduction(+ : acc)
-            for (int64_t jj = 0; jj < cols; ++jj)
-                acc += w_i[jj] * s[jj];
-            total += acc;
-            if (g_a || g_b) {
-#pragma omp simd
-                for (int64_t jj = 0; jj < cols; ++jj)
-                    s[jj] *= w_i[jj]; /* W_ij E_ij */
-                accumulate_row(a + i * k, s, tile, cols, k, g_a ? g_a + i * k : NULL, g_b ? g_tile : NULL);
-            }
+        const int64_t cols = min64(CHUNK_COLS, m - c0), cols_p = round_up(cols);
+        load_chunk(u->b + c0 * k, cols, k, sc);
+        if (grads)
+            memset(sc->g_b, 0, (size_t)(cols_p * kp) * sizeof(double));
+        for (int64_t r0 = row0; r0 < row1; r0 += BLOCK_ROWS) {
+            const int64_t rows = min64(BLOCK_ROWS, row1 - r0);
+            load_block(u->a + r0 * k, rows, k, sc);
+            if (r0 + BLOCK_ROWS < row1)
+                prefetch_rows(u->w + (r0 + BLOCK_ROWS) * m + c0, min64(BLOCK_ROWS, row1 - r0 - BLOCK_ROWS), m, cols);
+            block_of_s(sc, k, cols_p);
+            exp_in_place(sc->e, rows * cols_p);
+            for (int64_t r = 0; r < rows; ++r)
+                total += weigh_row(sc->e + r * cols_p, u->w + (r0 + r) * m + c0, u->g, cols,
+                                   u->g_w ? u->g_w + (r0 + r) * m + c0 : NULL);
+            /* padded rows: P = 0 (step 4 reads only the chunk's cols columns) */
+            memset(sc->e + rows * cols_p, 0, (size_t)((BLOCK_ROWS - rows) * cols_p) * sizeof(double));
+            if (!grads)
+                continue;
+            for (int64_t v = 0; v < kp; v += LANES)
+                block_grads(sc, v, cols, cols_p);
+            if (u->g_a)
+                for (int64_t r = 0; r < rows; ++r)
+                    for (int64_t kk = 0; kk < k; ++kk)
+                        u->g_a[(r0 + r) * k + kk] += sc->g_a[r * kp + kk];
         }
-        if (g_b)
-            store_chunk(g_tile, cols, k, g_b + c0 * k);
+        if (u->g_b)
+            for (int64_t jj = 0; jj < cols; ++jj)
+                memcpy(u->g_b + (c0 + jj) * k, sc->g_b + jj * kp, (size_t)k * sizeof(double));
     }
     return total;
 }
@@ -190,6 +324,52 @@ static double *alloc_split_partials(const double *dense, int64_t items, int64_t 
     return extra;
 }
 
+/* Every unit of every item in parallel: partial[item * splits + split] its sum; g_a `items x n x k`,
+ * g_b `items x m x k` (the split partials added), g_w `items x n x m`, each dense or NULL; scale
+ * `items` (NULL: 1). Returns 0, or 1 when scratch memory could not be allocated. */
+static int run_units(const double *a, const double *b, const double *w, const int64_t *off_a,
+                     const int64_t *off_b, const int64_t *off_w, const int64_t *order, int64_t items, int64_t n,
+                     int64_t m, int64_t k, const double *scale, double *partial, double *g_a, double *g_b,
+                     double *g_w, int threads)
+{
+    const int64_t splits = num_splits(n);
+    const int64_t units = items * splits;
+    const int64_t gb_size = m * k;
+    int failed = 0;
+    double *extra = alloc_split_partials(g_b, items, splits, gb_size, &failed);
+    if (failed)
+        return 1;
+    if (g_b && splits == 0)
+        memset(g_b, 0, (size_t)(items * gb_size) * sizeof(double));
+#pragma omp parallel num_threads(threads)
+    {
+        struct scratch sc;
+        if (all_allocated(alloc_scratch(&sc, k), &failed)) {
+#pragma omp for schedule(dynamic, 1)
+            for (int64_t u = 0; u < units; ++u) {
+                const int64_t item = order[u / splits], split = u % splits, row0 = split * SPLIT_ROWS;
+                const struct unit job = {
+                    .a = a + off_a[item],
+                    .b = b + off_b[item],
+                    .w = w + off_w[item],
+                    .m = m,
+                    .k = k,
+                    .g = scale ? scale[item] : 1.0,
+                    .g_a = g_a ? g_a + item * n * k : NULL,
+                    .g_b = g_b ? unit_partial(g_b, extra, item, split, splits, gb_size) : NULL,
+                    .g_w = g_w ? g_w + item * n * m : NULL,
+                };
+                partial[item * splits + split] = run_unit(&job, row0, min64(row0 + SPLIT_ROWS, n), &sc);
+            }
+            if (extra)
+                add_split_partials(g_b, extra, items, splits, gb_size);
+        }
+        free_scratch(&sc);
+    }
+    free(extra);
+    return failed;
+}
+
 /* out `items`: the sums; g_a `items x n x k` and g_b `items x m x k`: G_A and G_B, each dense or NULL
  * when not wanted (both NULL: the plain sums). Returns 0, or 1 when scratch memory could not be
  * allocated. */
@@ -198,39 +378,11 @@ int qtl_exp_sum_forward(const double *a, const double *b, const double *w, const
                         int64_t n, int64_t m, int64_t k, double *out, double *g_a, double *g_b, int threads)
 {
     const int64_t splits = num_splits(n);
-    const int64_t units = items * splits;
-    const int64_t gb_size = m * k;
-    int failed = 0;
-    double *extra = alloc_split_partials(g_b, items, splits, gb_size, &failed);
-    double *partial = failed ? NULL : malloc((size_t)(units > 0 ? units : 1) * sizeof(double));
-    if (!partial) {
-        free(extra);
+    double *partial = malloc((size_t)(items * splits > 0 ? items * splits : 1) * sizeof(double));
+    if (!partial)
         return 1;
-    }
-    if (g_b && splits == 0)
-        memset(g_b, 0, (size_t)(items * gb_size) * sizeof(double));
-#pragma omp parallel num_threads(threads)
-    {
-        const size_t tile_size = (size_t)(k > 0 ? k : 1) * CHUNK_COLS;
-        double *tile = malloc(tile_size * sizeof(double));
-        double *g_tile = g_b ? malloc(tile_size * sizeof(double)) : NULL;
-        double *s = malloc(CHUNK_COLS * sizeof(double));
-        if (all_allocated(!tile || !s || (g_b && !g_tile), &failed)) {
-#pragma omp for schedule(dynamic, 1)
-            for (int64_t u = 0; u < units; ++u) {
-                const int64_t item = order[u / splits], split = u % splits, row0 = split * SPLIT_ROWS;
-                double *gb = g_b ? unit_partial(g_b, extra, item, split, splits, gb_size) : NULL;
-                partial[item * splits + split] =
-                    forward_unit(a + off_a[item], b + off_b[item], w + off_w[item], row0, min64(row0 + SPLIT_ROWS, n),
-                                 m, k, g_a ? g_a + item * n * k : NULL, gb, tile, g_tile, s);
-            }
-            if (extra)
-                add_split_partials(g_b, extra, items, splits, gb_size);
-        }
-        free(tile);
-        free(g_tile);
-        free(s);
-    }
+    const int failed = run_units(a, b, w, off_a, off_b, off_w, order, items, n, m, k, NULL, partial, g_a, g_b,
+                                 NULL, threads);
     if (!failed)
         for (int64_t item = 0; item < items; ++item) {
             double total = 0.0;
@@ -239,40 +391,7 @@ int qtl_exp_sum_forward(const double *a, const double *b, const double *w, const
             out[item] = total;
         }
     free(partial);
-    free(extra);
     return failed;
-}
-
-/* Gradients of one unit: rows [row0, row1) of dL/dA and dL/dW, and this unit's dL/dB (all m rows,
- * stored, not added, into grad_b). Null outputs are not wanted. */
-static void backward_unit(const double *a, const double *b, const double *w, double g, int64_t row0,
-                          int64_t row1, int64_t m, int64_t k, double *grad_a, double *grad_b, double *grad_w,
-                          double *tile, double *grad_tile, double *s)
-{
-    if (grad_a)
-        memset(grad_a + row0 * k, 0, (size_t)((row1 - row0) * k) * sizeof(double));
-    for (int64_t c0 = 0; c0 < m; c0 += CHUNK_COLS) {
-        const int64_t cols = min64(CHUNK_COLS, m - c0);
-        transpose_chunk(b + c0 * k, cols, k, tile);
-        if (grad_b)
-            memset(grad_tile, 0, (size_t)(k * CHUNK_COLS) * sizeof(double));
-        for (int64_t i = row0; i < row1; ++i) {
-            const double *a_i = a + i * k;
-            const double *w_i = w + i * m + c0;
-            row_of_s(a_i, tile, cols, k, s);
-#pragma omp simd
-            for (int64_t jj = 0; jj < cols; ++jj)
-                s[jj] = g * exp(s[jj]); /* g E_ij */
-            if (grad_w)
-                memcpy(grad_w + i * m + c0, s, (size_t)cols * sizeof(double));
-#pragma omp simd
-            for (int64_t jj = 0; jj < cols; ++jj)
-                s[jj] *= w_i[jj]; /* g W_ij E_ij */
-            accumulate_row(a_i, s, tile, cols, k, grad_a ? grad_a + i * k : NULL, grad_b ? grad_tile : NULL);
-        }
-        if (grad_b)
-            store_chunk(grad_tile, cols, k, grad_b + c0 * k);
-    }
 }
 
 /* grad_out `items`; grad_a `items x n x k`, grad_b `items x m x k`, grad_w `items x n x m`, each
@@ -283,36 +402,11 @@ int qtl_exp_sum_backward(const double *a, const double *b, const double *w, cons
                          double *grad_b, double *grad_w, int threads)
 {
     const int64_t splits = num_splits(n);
-    const int64_t units = items * splits;
-    const int64_t gb_size = m * k;
-    int failed = 0;
-    double *extra = alloc_split_partials(grad_b, items, splits, gb_size, &failed);
-    if (failed)
+    double *partial = malloc((size_t)(items * splits > 0 ? items * splits : 1) * sizeof(double));
+    if (!partial)
         return 1;
-    if (grad_b && splits == 0)
-        memset(grad_b, 0, (size_t)(items * gb_size) * sizeof(double));
-#pragma omp parallel num_threads(threads)
-    {
-        const size_t tile_size = (size_t)(k > 0 ? k : 1) * CHUNK_COLS;
-        double *tile = malloc(tile_size * sizeof(double));
-        double *grad_tile = grad_b ? malloc(tile_size * sizeof(double)) : NULL;
-        double *s = malloc(CHUNK_COLS * sizeof(double));
-        if (all_allocated(!tile || !s || (grad_b && !grad_tile), &failed)) {
-#pragma omp for schedule(dynamic, 1)
-            for (int64_t u = 0; u < units; ++u) {
-                const int64_t item = order[u / splits], split = u % splits, row0 = split * SPLIT_ROWS;
-                double *gb = grad_b ? unit_partial(grad_b, extra, item, split, splits, gb_size) : NULL;
-                backward_unit(a + off_a[item], b + off_b[item], w + off_w[item], grad_out[item], row0,
-                              min64(row0 + SPLIT_ROWS, n), m, k, grad_a ? grad_a + item * n * k : NULL, gb,
-                              grad_w ? grad_w + item * n * m : NULL, tile, grad_tile, s);
-            }
-            if (extra)
-                add_split_partials(grad_b, extra, items, splits, gb_size);
-        }
-        free(tile);
-        free(grad_tile);
-        free(s);
-    }
-    free(extra);
+    const int failed = run_units(a, b, w, off_a, off_b, off_w, order, items, n, m, k, grad_out, partial, grad_a,
+                                 grad_b, grad_w, threads);
+    free(partial);
     return failed;
 }
