@@ -27,8 +27,8 @@ from qtl.models.fitting import DEFAULT_INDUCING, DEFAULT_MAX_ITER, DEFAULT_RESTA
 RUN_DIR_RESOLVER = "qtl.run_dir"
 HELP_WIDTH = 44  # column of the descriptions in --help
 PERTURBATION_HELP = "std of the restarts' perturbation, relative to each parameter's spread"
-BATCHED_HELP = ("all restarts at once: one batched rollout per evaluation, one joint optimisation of their summed "
-                "returns (false: one restart after the other)")
+BATCHED_HELP = ("all restarts at once: one batched rollout evaluates every running restart, each restart keeps its "
+                "own optimiser (L-BFGS: the sequential run, in lockstep) (false: one restart after the other)")
 SPACE_HELP = "log | natural: the space θ is handled in"
 INDUCING_HELP = "inducing inputs of the sparse GP (PILCO's FITC uses ~300)"
 

@@ -1,27 +1,35 @@
 """Policy improvement: maximise the predicted return V^π(ψ) by gradients (Algorithm 1, lines 6-9).
 
 Restarts run one after the other, or (``batched=True``) all at once: their ψ stacked as a leading
-restart dimension `R` of the policy (:mod:`qtl.policies.batching`), one batched rollout evaluates
-all R predicted returns, and one optimiser maximises their sum Σ_r V_r over the concatenated ψ
-(BoTorch's joint optimisation of restarts, ``gen_candidates_scipy``). The gradient of the sum is
-block-separable, so each restart gets its own gradient. The batched search starts from the same
-points as the sequential one; what differs: L-BFGS's curvature memory, line search and stopping
-tests are joint (Adam acts per element, so its restarts follow their own paths), a batched value
-equals the plain policy's to round-off (~1e-15 relative), and a stochastic objective (particles
-with ``resample_every > 0``) advances its draws once per batched evaluation, shared by the restarts.
+restart dimension `R` of the policy (:mod:`qtl.policies.batching`), so that one batched rollout
+evaluates all R predicted returns, and the gradient of their sum Σ_r V_r, which is block-separable,
+gives each restart its own gradient. The batched search starts from the same points as the
+sequential one, and each restart runs its own optimiser:
+
+- L-BFGS: R independent runs of :func:`qtl.lbfgs.lbfgs` (torch's L-BFGS, each with its own curvature
+  memory, line search and stopping tests) in lockstep: every round, each running restart asks for V
+  and ∇V at one point and one batched rollout answers all of them; a restart that stops leaves the
+  batch. Each restart evaluates the points the sequential search (``torch.optim.LBFGS``) evaluates;
+- Adam: one Adam over the stacked ψ, which acts per element, so each restart follows its own path.
+
+So a batched search is the sequential one up to round-off (a batched value equals the plain
+policy's to ~1e-15 relative, which could in principle tip a line-search test), except that a
+stochastic objective (particles with ``resample_every > 0``) advances its draws once per batched
+evaluation, shared by the restarts.
 """
 
 from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Callable
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
 
 import torch
 from torch import Tensor, nn
 
 from qtl.errors import NonFiniteObjective
+from qtl.lbfgs import Evaluation, LBFGSOptions, lbfgs
 from qtl.policies import Policy, psi_names, set_psi, stack_psi
 
 log = logging.getLogger(__name__)
@@ -37,15 +45,17 @@ class SearchResult:
     """Outcome of a policy search: the best predicted return and what it cost.
 
     ``evaluations`` counts evaluations of one restart's predicted return, failed ones included: a
-    batched rollout of R restarts counts R, so that sequential and batched searches compare.
-    ``rollouts`` counts calls of the objective: equal to ``evaluations`` when sequential, one per
-    batched rollout (plus the single-restart re-evaluations that locate a failure) when batched.
+    batched rollout of R restarts counts R, so that sequential and batched searches compare;
+    ``run_evaluations`` splits it by run. ``rollouts`` counts calls of the objective: equal to
+    ``evaluations`` when sequential, one per batched rollout (plus the single-restart
+    re-evaluations that locate a failure) when batched.
     """
 
     value: float
     evaluations: int
     run_values: list[float]  # best value of each run (-inf for a run that evaluated nothing finite)
     rollouts: int
+    run_evaluations: list[int] = field(default_factory=list)  # evaluations of each run, failed ones included
 
 
 def _perturb(policy: nn.Module, scale: float, generator: torch.Generator | None) -> None:
@@ -132,7 +142,7 @@ class _RestartingSearch:
             return self._search_batched(policy, objective, generator, tick)
         start = {k: v.detach().clone() for k, v in policy.state_dict().items()}
         best = _BestSeen(policy)
-        run_values, evaluations = [], 0
+        run_values, run_evaluations = [], []
         for run in range(self.restarts):
             policy.load_state_dict(start)
             if run > 0:
@@ -152,13 +162,14 @@ class _RestartingSearch:
                 log.warning("policy search run %d stopped at a numerically invalid ψ (%s); "
                             "it keeps the best ψ it evaluated", run, err)
             run_values.append(seen.value)
-            evaluations += seen.calls
+            run_evaluations.append(seen.calls)
             if seen.state is not None and seen.value > best.value:
                 best.value, best.state = seen.value, seen.state
         if best.state is None:
             raise NonFiniteObjective("no policy search run evaluated a finite predicted return")
         policy.load_state_dict(best.state)
-        return SearchResult(value=best.value, evaluations=evaluations, run_values=run_values, rollouts=evaluations)
+        return SearchResult(value=best.value, evaluations=sum(run_evaluations), run_values=run_values,
+                            rollouts=sum(run_evaluations), run_evaluations=run_evaluations)
 
     def _search_batched(
         self,
@@ -167,7 +178,7 @@ class _RestartingSearch:
         generator: torch.Generator | None,
         tick: Callable[[], None],
     ) -> SearchResult:
-        """All restarts in one joint optimisation of Σ_r V_r; the best restart's best ψ left in ``policy``."""
+        """All restarts at once, ψ stacked `R x ...`, rollouts batched; the best restart's best ψ left in ``policy``."""
         if not isinstance(policy, Policy) or policy.batch_shape:
             raise TypeError(f"a batched policy search needs an unbatched qtl Policy, got {type(policy).__name__}")
         states = self.starting_states(policy, generator)
@@ -181,7 +192,7 @@ class _RestartingSearch:
             raise NonFiniteObjective("no policy search run evaluated a finite predicted return")
         policy.load_state_dict({**states[0], **batch.best_psi[best]})
         return SearchResult(value=batch.best_value[best], evaluations=sum(batch.calls), run_values=batch.best_value,
-                            rollouts=batch.rollouts)
+                            rollouts=batch.rollouts, run_evaluations=batch.calls)
 
 
 class _DropRestarts(Exception):
@@ -197,6 +208,8 @@ class _RestartBatch:
 
     While it is open, ``policy``'s parameters are the stacked ψ of the active restarts (so that
     ``objective()`` evaluates all of them in one rollout); :meth:`close` puts the plain ones back.
+    A restart's trainable ψ flattened (parameters in ``named_parameters`` order, as
+    ``torch.optim.LBFGS`` flattens them) is its point `n`.
     """
 
     def __init__(self, policy: Policy, states: list[dict[str, Tensor]]) -> None:
@@ -209,8 +222,15 @@ class _RestartBatch:
         self.rollouts = 0  # calls of the objective
         self.active = list(range(restarts))
         self.requires_grad = {name: p.requires_grad for name, p in policy.named_parameters()}
+        self.start = stack_psi(states, self.names)  # `R x ...`: the parts of ψ no optimiser moves stay these
+        self.segments: dict[str, slice] = {}  # where each trainable parameter lies in a point
+        offset = 0
+        for name in self.names:
+            if self.requires_grad[name]:
+                size = self.start[name][0].numel()
+                self.segments[name], offset = slice(offset, offset + size), offset + size
         self.params: dict[str, nn.Parameter] = {}
-        self.plain = set_psi(policy, self._stacked(stack_psi(states, self.names)), (restarts,))
+        self.plain = set_psi(policy, self._stacked(self.start), (restarts,))
 
     def _stacked(self, psi: dict[str, Tensor]) -> dict[str, nn.Parameter]:
         """ψ `R' x ...` as the leaf parameters the optimiser moves; installed in the policy."""
@@ -221,6 +241,18 @@ class _RestartBatch:
     def trainable(self) -> list[nn.Parameter]:
         """The stacked parameters an optimiser moves (those of ψ that require gradients)."""
         return [p for p in self.params.values() if p.requires_grad]
+
+    def point(self, position: int) -> Tensor:
+        """The trainable ψ of the restart at ``position``, flattened: `n`."""
+        return torch.cat([p[position].detach().reshape(-1) for p in self.trainable()])
+
+    def load(self, points: Mapping[int, Tensor]) -> None:
+        """Make the restarts in ``points`` (restart → point `n`) the active ones, in that order, at those points."""
+        self.active = list(points)
+        stacked = torch.stack(list(points.values()))  # R' x n
+        psi = {name: stacked[:, self.segments[name]].reshape(len(self.active), *self.start[name].shape[1:])
+               if name in self.segments else self.start[name][self.active] for name in self.names}
+        set_psi(self.policy, self._stacked(psi), (len(self.active),))
 
     def close(self) -> None:
         """Put the policy's plain parameters back (their values are those before the search)."""
@@ -236,6 +268,39 @@ class _RestartBatch:
             self.best_value[restart] = value
             self.best_psi[restart] = self._psi_at(position)
 
+    def evaluate_each(self, objective: Callable[[], Tensor]) -> list[Evaluation | None]:
+        """(−V_r, −∂V_r/∂ψ_r flattened `n`) of each active restart from one rollout; None where either is not finite.
+
+        Each finite value is offered as its restart's best. When the batched rollout fails
+        numerically, each restart is evaluated alone (as the sequential search would).
+        """
+        self.rollouts += 1
+        for restart in self.active:
+            self.calls[restart] += 1
+        try:
+            values = objective()
+            self._check_shape(values)
+            (-values.sum()).backward()
+        except INVALID_PSI_ERRORS as err:
+            log.warning("batched policy search: the rollout failed (%s); evaluating each restart alone", err)
+            alone = self._alone(objective)
+            return [self._answer(position, value, grad) for position, (value, grad) in enumerate(alone)]
+        params = self.trainable()
+        return [self._answer(position, values[position].detach(), _flat_grad(params, position))
+                for position in range(len(self.active))]
+
+    def _answer(self, position: int, value: Tensor | None, grad: Tensor | None) -> Evaluation | None:
+        """The evaluation an optimiser receives for the restart at ``position``; a finite value is offered."""
+        if value is None or grad is None or not bool(torch.isfinite(value)):
+            return None
+        self._offer(position, float(value))
+        return (-float(value), grad) if bool(torch.isfinite(grad).all()) else None
+
+    def _check_shape(self, values: Tensor) -> None:
+        if values.shape != (len(self.active),):
+            raise ValueError(f"a batched policy search needs one predicted return per restart "
+                             f"`{len(self.active)}`, the objective gave shape {tuple(values.shape)}")
+
     def evaluate(self, objective: Callable[[], Tensor]) -> Tensor:
         """V `R'` of the active restarts in one rollout, each finite value offered as its restart's best.
 
@@ -250,9 +315,7 @@ class _RestartBatch:
         except INVALID_PSI_ERRORS as err:
             log.warning("batched policy search: the rollout failed (%s); re-evaluating each restart", err)
             raise _DropRestarts(self._failing_alone(objective)) from err
-        if values.shape != (len(self.active),):
-            raise ValueError(f"a batched policy search needs one predicted return per restart "
-                             f"`{len(self.active)}`, the objective gave shape {tuple(values.shape)}")
+        self._check_shape(values)
         finite = torch.isfinite(values.detach())
         for position in range(len(self.active)):
             if finite[position]:
@@ -261,9 +324,9 @@ class _RestartBatch:
             raise _DropRestarts((~finite).nonzero().flatten().tolist())
         return values
 
-    def _failing_alone(self, objective: Callable[[], Tensor]) -> list[int]:
-        """Positions of the restarts whose own evaluation (value or gradient) fails; the others' values offered."""
-        failing = []
+    def _alone(self, objective: Callable[[], Tensor]) -> list[tuple[Tensor | None, Tensor | None]]:
+        """V and −∂V/∂ψ flattened `n` of each active restart evaluated alone, both None where that raises."""
+        found: list[tuple[Tensor | None, Tensor | None]] = []
         try:
             for position, restart in enumerate(self.active):
                 self.rollouts += 1
@@ -273,17 +336,25 @@ class _RestartBatch:
                 set_psi(self.policy, single, (1,))
                 try:
                     value = objective()
-                    value.sum().backward()
+                    (-value.sum()).backward()
                 except INVALID_PSI_ERRORS:
-                    failing.append(position)
+                    found.append((None, None))
                     continue
-                grads_finite = all(p.grad is None or bool(torch.isfinite(p.grad).all()) for p in single.values())
-                if bool(torch.isfinite(value.detach()).all()) and grads_finite:
-                    self._offer(position, float(value.detach().sum()))
-                else:
-                    failing.append(position)
+                trainable = [p for p in single.values() if p.requires_grad]
+                found.append((value.detach().sum(), _flat_grad(trainable, 0)))
         finally:
             set_psi(self.policy, self.params, (len(self.active),))
+        return found
+
+    def _failing_alone(self, objective: Callable[[], Tensor]) -> list[int]:
+        """Positions of the restarts whose own evaluation (value or gradient) fails; the others' values offered."""
+        failing = []
+        for position, (value, grad) in enumerate(self._alone(objective)):
+            if value is not None and grad is not None and bool(torch.isfinite(value)) and bool(
+                    torch.isfinite(grad).all()):
+                self._offer(position, float(value))
+            else:
+                failing.append(position)
         if not failing:
             log.warning("batched policy search: no restart fails alone; every restart stops at its best ψ")
             return list(range(len(self.active)))
@@ -298,29 +369,36 @@ class _RestartBatch:
         if bad.any():
             raise _DropRestarts(bad.nonzero().flatten().tolist())
 
-    def drop(self, positions: list[int], *, from_best: bool) -> list[int]:
-        """Remove the restarts at ``positions``; the others go on from their best (or current) ψ; the kept positions."""
+    def drop(self, positions: list[int]) -> list[int]:
+        """Remove the restarts at ``positions``; the others go on from their current ψ; the kept positions."""
         for position in positions:
             log.warning("policy search restart %d stopped at a numerically invalid ψ; it keeps the best ψ it "
                         "evaluated", self.active[position])
         kept = [position for position in range(len(self.active)) if position not in set(positions)]
-        states = []
-        for position in kept:
-            best = self.best_psi[self.active[position]]  # set: its value at the failed evaluation was finite
-            states.append(best if from_best and best is not None else self._psi_at(position))
+        states = [self._psi_at(position) for position in kept]
         self.active = [self.active[position] for position in kept]
         if self.active:
             set_psi(self.policy, self._stacked(stack_psi(states, self.names)), (len(self.active),))
         return kept
 
 
-class LBFGSSearch(_RestartingSearch):
-    """L-BFGS with a strong-Wolfe line search, ``max_iter`` evaluations per run.
+def _flat_grad(params: list[nn.Parameter], position: int) -> Tensor:
+    """The gradient of the restart at ``position`` of stacked ``params``, flattened `n` (zeros where there is none)."""
+    return torch.cat([p.grad[position].reshape(-1) if p.grad is not None else p.new_zeros(p[position].numel())
+                      for p in params])
 
-    Batched: one L-BFGS over the concatenated ψ of all restarts maximises Σ_r V_r with at most
-    ``max_iter`` batched evaluations (its stopping tests apply to the joint problem). A restart
-    whose value or gradient turns non-finite, or whose rollout fails alone, is dropped at its best
-    ψ; the others go on from their best ψ with a fresh L-BFGS memory and the remaining budget.
+
+class LBFGSSearch(_RestartingSearch):
+    """L-BFGS with a strong-Wolfe line search, ``max_iter`` iterations and evaluations per run (torch's LBFGS).
+
+    Sequential: ``torch.optim.LBFGS`` per run. Batched: each restart runs its own
+    :func:`qtl.lbfgs.lbfgs` (the same algorithm, its own memory, line search, stopping tests and
+    budget); they advance in lockstep, one batched rollout per round answering every running
+    restart's request, and a restart leaves the batch when it stops. So each restart evaluates the
+    points it evaluates in the sequential search (up to round-off between batched and plain
+    rollouts). A restart whose value or gradient turns non-finite, or whose rollout fails alone,
+    stops at its best ψ, as a sequential run does; when a batched rollout fails, its restarts are
+    evaluated one by one for that round.
     """
 
     def __init__(
@@ -349,29 +427,24 @@ class LBFGSSearch(_RestartingSearch):
         optimiser.step(closure)
 
     def _run_batched(self, batch: _RestartBatch, objective: Callable[[], Tensor], tick: Callable[[], None]) -> None:
-        budget = self.max_iter
-        while batch.active and budget > 0:
-            optimiser = torch.optim.LBFGS(
-                batch.trainable(), lr=1.0, max_iter=budget, max_eval=budget, line_search_fn="strong_wolfe"
-            )
-            used = 0
-
-            def closure(optimiser: torch.optim.LBFGS = optimiser) -> Tensor:
-                nonlocal used
-                used += 1
-                optimiser.zero_grad()
-                loss = -batch.evaluate(objective).sum()
-                loss.backward()
-                batch.check_gradients()
-                tick()
-                return loss
-
-            try:
-                optimiser.step(closure)
-                return
-            except _DropRestarts as drop:
-                budget -= used
-                batch.drop(drop.positions, from_best=True)
+        options = LBFGSOptions(max_iter=self.max_iter, max_eval=self.max_iter)  # as _run's torch.optim.LBFGS
+        runs = {restart: lbfgs(batch.point(position), options) for position, restart in enumerate(batch.active)}
+        asked = {restart: next(run) for restart, run in runs.items()}  # restart → the point it wants evaluated
+        while asked:
+            batch.load(asked)
+            answers = batch.evaluate_each(objective)
+            tick()
+            for restart, answer in zip(list(asked), answers, strict=True):
+                if answer is None:
+                    log.warning("policy search restart %d stopped at a numerically invalid ψ; it keeps the best ψ "
+                                "it evaluated", restart)
+                    runs[restart].close()
+                    del asked[restart]
+                    continue
+                try:
+                    asked[restart] = runs[restart].send(answer)
+                except StopIteration:  # converged or out of budget: it leaves the batch
+                    del asked[restart]
 
 
 class AdamSearch(_RestartingSearch):
@@ -411,7 +484,7 @@ class AdamSearch(_RestartingSearch):
                 batch.check_gradients()
             except _DropRestarts as drop:
                 moved = dict(zip(batch.trainable(), [optimiser.state[p] for p in batch.trainable()], strict=True))
-                kept = batch.drop(drop.positions, from_best=False)
+                kept = batch.drop(drop.positions)
                 optimiser = torch.optim.Adam(batch.trainable(), lr=self.lr)
                 for old, new in zip(moved, batch.trainable(), strict=True):
                     optimiser.state[new] = {

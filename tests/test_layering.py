@@ -27,7 +27,7 @@ LAYERS: list[tuple[str, set[str]]] = [
     ("envs", {"envs"}),
     ("foundation", {"qtl.errors", "qtl.gaussian", "qtl.seeding"}),
     ("data, task", {"qtl.data", "qtl.task"}),
-    ("maths", {"qtl.kernels"}),
+    ("maths", {"qtl.kernels", "qtl.lbfgs"}),
     ("parts", {"qtl.features", "qtl.models", "qtl.policies", "qtl.rewards"}),
     ("policy search", {"qtl.policy_search"}),
     ("propagation", {"qtl.propagation"}),
@@ -45,7 +45,7 @@ SAME_LAYER = {("qtl.policies", "qtl.features"), ("qtl.rewards", "qtl.features")}
 
 # Imported alone in a fresh interpreter, each of these may load only what the table allows it.
 ALONE = [
-    "qtl.gaussian", "qtl.errors", "qtl.kernels", "qtl.features", "qtl.data", "qtl.task", "qtl.models",
+    "qtl.gaussian", "qtl.errors", "qtl.kernels", "qtl.lbfgs", "qtl.features", "qtl.data", "qtl.task", "qtl.models",
     "qtl.policies", "qtl.rewards", "qtl.propagation", "qtl.policy_search", "qtl.transfer", "envs",
 ]
 

@@ -1,9 +1,13 @@
-"""Policy search: finds the maximum, keeps the best ψ across restarts, survives invalid ψ; restarts batched."""
+"""Policy search: finds the maximum, keeps the best ψ across restarts, survives invalid ψ; restarts batched.
+
+Batched L-BFGS runs each restart's own L-BFGS in lockstep: per restart it is the sequential search.
+"""
 
 from __future__ import annotations
 
 import functools
 import math
+from collections.abc import Callable
 
 import pytest
 import torch
@@ -134,18 +138,24 @@ def test_batched_search_finds_the_maximum_and_leaves_the_best_restart(search):
     assert policy.batch_shape == () and policy.x.shape == (2,)  # the plain policy again
     assert result.value == pytest.approx(1.0, abs=1e-4) and result.value == max(result.run_values)
     assert result.value == pytest.approx(float(policy.value()), abs=0, rel=0)  # the best ψ is the one left
-    assert len(result.run_values) == 3 and result.evaluations == 3 * result.rollouts
+    assert len(result.run_values) == 3 and result.evaluations == sum(result.run_evaluations)
+    assert result.rollouts == max(result.run_evaluations)  # one batched rollout per round, restarts in lockstep
 
 
-def test_batched_search_of_a_real_rollout_improves_it(gp_factory):
-    """Moment matching, squashed RBF policy: the joint search improves V and leaves the best restart's ψ."""
+def moment_matching_problem(gp_factory) -> tuple[SquashedPolicy, Callable[[], torch.Tensor]]:
+    """A squashed RBF policy and V(ψ) of a 5-step moment-matching rollout of a small GP (deterministic)."""
     gp = gp_factory(30, 3, 1, (1,), seed=22)
     gen = torch.Generator().manual_seed(23)
     policy = SquashedPolicy(RBFPolicy(4, 1, 8, targets=torch.randn(8, 1, generator=gen, dtype=torch.float64),
                                       generator=gen), 2.0)
     propagator = MomentMatching(gp, policy, quadratic_reward(3, (1,)), angle_dims=(1,))
     start = Gaussian(torch.tensor([0.1, 0.2, -0.1], dtype=torch.float64), 0.01 * torch.eye(3, dtype=torch.float64))
-    objective = functools.partial(propagator.expected_return, start, 5)
+    return policy, functools.partial(propagator.expected_return, start, 5)
+
+
+def test_batched_search_of_a_real_rollout_improves_it(gp_factory):
+    """Moment matching, squashed RBF policy: the batched search improves V and leaves the best restart's ψ."""
+    policy, objective = moment_matching_problem(gp_factory)
     with torch.no_grad():
         before = float(objective())
     ticks = []
@@ -187,6 +197,94 @@ def test_a_restart_that_fails_is_dropped_and_the_others_go_on(make, failure):
     assert others == pytest.approx([1.0, 1.0], abs=1e-4)  # the others went on to the maximum
     assert result.value == max(others) and float(policy.tag) != bad_tag
     assert result.evaluations < 3 * result.rollouts  # the dropped restart stopped counting
+
+
+def trainable_psi(policy: Policy) -> torch.Tensor:
+    """The trainable ψ flattened per restart: `*batch_shape x n` (L-BFGS's point)."""
+    return torch.cat([p.detach().flatten(start_dim=len(policy.batch_shape))
+                      for p in policy.parameters() if p.requires_grad], -1)
+
+
+def points_per_restart(search: LBFGSSearch, policy: Policy, objective: Callable[[], torch.Tensor],
+                       seed: int) -> tuple[list[list[torch.Tensor]], object]:
+    """Each restart's evaluated points, in order, and the search's result (no restart may fail)."""
+    seen = []
+
+    def recording() -> torch.Tensor:
+        seen.append(trainable_psi(policy).clone())
+        return objective()
+
+    result = search(policy, recording, generator=torch.Generator().manual_seed(seed))
+    counts = result.run_evaluations
+    points: list[list[torch.Tensor]] = [[] for _ in counts]
+    if not search.batched:  # the runs one after the other
+        for restart, count in enumerate(counts):
+            points[restart], seen = seen[:count], seen[count:]
+        return points, result
+    for round_, stacked in enumerate(seen):  # round k holds the restarts with more than k evaluations, in order
+        active = [restart for restart, count in enumerate(counts) if count > round_]
+        assert stacked.shape[0] == len(active), "a restart that stopped did not leave the batch"
+        for row, restart in enumerate(active):
+            points[restart].append(stacked[row])
+    return points, result
+
+
+# Points of a batched and a sequential L-BFGS run agree to this, relative to their norm (seen: ~1e-10).
+POINT_RTOL = 1e-8
+
+
+def test_batched_lbfgs_runs_each_restart_as_the_sequential_search(gp_factory):
+    """Lockstep L-BFGS (moment matching): per restart the same points, evaluations and best V as torch's LBFGS alone."""
+    runs = {}
+    for batched in (False, True):
+        policy, objective = moment_matching_problem(gp_factory)
+        search = LBFGSSearch(max_iter=12, restarts=3, perturbation=1.0, batched=batched)
+        points, result = points_per_restart(search, policy, objective, seed=1)
+        runs[batched] = (points, result, trainable_psi(policy))
+    (seq_points, seq, seq_psi), (bat_points, bat, bat_psi) = runs[False], runs[True]
+    assert bat.run_evaluations == seq.run_evaluations and len(set(seq.run_evaluations)) > 1  # restarts stop apart
+    assert bat.evaluations == seq.evaluations == seq.rollouts == sum(seq.run_evaluations)
+    assert bat.rollouts == max(bat.run_evaluations)
+    # Batched and plain rollouts differ by round-off (~1e-15), which L-BFGS's updates amplify a little.
+    for restart, (want, got) in enumerate(zip(seq_points, bat_points, strict=True)):
+        for i, (w, g) in enumerate(zip(want, got, strict=True)):
+            assert (g - w).norm() <= POINT_RTOL * w.norm(), f"restart {restart}, evaluation {i}"
+    assert bat.run_values == pytest.approx(seq.run_values, rel=1e-9, abs=0)
+    assert bat.value == pytest.approx(seq.value, rel=1e-9, abs=0)
+    assert (bat_psi - seq_psi).norm() <= POINT_RTOL * seq_psi.norm()  # the same best ψ left in the policy
+
+
+class ValleyPolicy(BowlPolicy):
+    """The toy policy with a curved valley (maximum 1 at (1, 1)) beside an invalid region where V is NaN."""
+
+    def value(self) -> torch.Tensor:
+        """1 − (1 − x₀)² − 10 (x₁ − x₀²)², NaN where x₀ > 0.6 and x₁ < 0.3: `R` batched, a scalar otherwise."""
+        x0, x1 = self.x[..., 0], self.x[..., 1]
+        value = 1.0 - (1.0 - x0).square() - 10.0 * (x1 - x0.square()).square()
+        return torch.where(invalid(self.x), math.nan, value)
+
+
+def invalid(x: torch.Tensor) -> torch.Tensor:
+    """Where ValleyPolicy's V is NaN, for x `... x 2`."""
+    return (x[..., 0] > 0.6) & (x[..., 1] < 0.3)
+
+
+def test_batched_lbfgs_stops_a_failing_restart_where_the_sequential_search_does():
+    """A restart that reaches the invalid region stops at its best ψ after the same evaluations, alone or batched."""
+    results = {}
+    for batched in (False, True):
+        policy = ValleyPolicy([-1.0, 0.5])
+        search = LBFGSSearch(max_iter=30, restarts=4, perturbation=0.5, batched=batched)
+        points, result = points_per_restart(search, policy, policy.value, seed=2)
+        results[batched] = (points, result)
+    (seq_points, seq), (bat_points, bat) = results[False], results[True]
+    assert bat.run_evaluations == seq.run_evaluations and bat.run_values == seq.run_values
+    assert bat.value == seq.value and all(math.isfinite(v) for v in seq.run_values)
+    for want, got in zip(seq_points, bat_points, strict=True):
+        assert len(got) == len(want) and all(torch.equal(g, w) for g, w in zip(got, want, strict=True))
+    stopped = [r for r, restart in enumerate(seq_points) if invalid(restart[-1])]
+    assert 0 < len(stopped) < 4  # some restarts stepped into the invalid region, the others converged
+    assert all(seq.run_values[r] == pytest.approx(1.0, abs=1e-6) for r in range(4) if r not in stopped)
 
 
 def test_batched_adam_follows_each_restarts_own_path():
