@@ -178,11 +178,11 @@ static void block_of_s(const struct scratch *sc, int64_t k, int64_t cols_p)
         vec acc[BLOCK_ROWS] = {0};
         for (int64_t kk = 0; kk < k; ++kk) {
             const vec t = *(const vec *)(sc->b_t + kk * CHUNK_COLS + jj);
-FULLY_UNROLLED
+            FULLY_UNROLLED
             for (int r = 0; r < BLOCK_ROWS; ++r)
                 acc[r] += sc->a_row[r * sc->kp + kk] * t;
         }
-FULLY_UNROLLED
+        FULLY_UNROLLED
         for (int r = 0; r < BLOCK_ROWS; ++r)
             *(vec *)(sc->e + r * cols_p + jj) = acc[r];
     }
@@ -218,14 +218,14 @@ static void block_grads(struct scratch *sc, int64_t v, int64_t cols, int64_t col
 {
     const int64_t kp = sc->kp;
     vec a[BLOCK_ROWS], g_a[BLOCK_ROWS] = {0};
-FULLY_UNROLLED
+    FULLY_UNROLLED
     for (int r = 0; r < BLOCK_ROWS; ++r)
         a[r] = *(const vec *)(sc->a_row + r * kp + v);
     for (int64_t jj = 0; jj < cols; ++jj) {
         const vec b = *(const vec *)(sc->b_row + jj * kp + v);
         vec *g_b = (vec *)(sc->g_b + jj * kp + v);
         vec sum = *g_b;
-FULLY_UNROLLED
+        FULLY_UNROLLED
         for (int r = 0; r < BLOCK_ROWS; ++r) {
             const double p = sc->e[r * cols_p + jj];
             g_a[r] += p * b;
@@ -233,7 +233,7 @@ FULLY_UNROLLED
         }
         *g_b = sum;
     }
-FULLY_UNROLLED
+    FULLY_UNROLLED
     for (int r = 0; r < BLOCK_ROWS; ++r)
         *(vec *)(sc->g_a + r * kp + v) = g_a[r];
 }
