@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -47,6 +48,8 @@ class Gaussian:
     def expand(self) -> Gaussian:
         """The same distribution with mean and covariance broadcast to the full batch shape."""
         batch = self.batch_shape
+        if self.mean.shape[:-1] == batch and self.cov.shape[:-2] == batch:
+            return self
         return Gaussian(self.mean.expand(*batch, self.dim), self.cov.expand(*batch, self.dim, self.dim))
 
     def __getitem__(self, index: int | slice | tuple) -> Gaussian:
@@ -90,6 +93,23 @@ class MomentMatch:
 
 # A map of Gaussian inputs with exact (or moment-matched) output moments.
 GaussianMap = Callable[[Gaussian], MomentMatch]
+
+
+@functools.lru_cache(maxsize=64)
+def identity(dim: int, dtype: torch.dtype, device: torch.device) -> Tensor:
+    """The `dim x dim` identity, created once per (dim, dtype, device): read-only, never write into it."""
+    return torch.eye(dim, dtype=dtype, device=device)
+
+
+def batch_matmul(a: Tensor, b: Tensor) -> Tensor:
+    """``a @ b`` for `... x m x k` and `... x k x p` of equal batch shapes as one ``bmm`` (fewer dispatched views)."""
+    batch = a.shape[:-2]
+    if batch != b.shape[:-2]:
+        return a @ b
+    if not batch:
+        return torch.mm(a, b)
+    out = torch.bmm(a.reshape(-1, *a.shape[-2:]), b.reshape(-1, *b.shape[-2:]))
+    return out.view(*batch, *out.shape[-2:])
 
 
 def symmetrize(cov: Tensor) -> Tensor:

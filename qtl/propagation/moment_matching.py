@@ -20,7 +20,7 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
-from qtl.gaussian import Gaussian, GaussianMap, MomentMatch, symmetrize
+from qtl.gaussian import Gaussian, GaussianMap, MomentMatch, batch_matmul, symmetrize
 from qtl.kernels import SEKernelMoments
 from qtl.policies.base import Policy
 from qtl.propagation.base import DynamicsSource, Rollout
@@ -57,13 +57,14 @@ class MomentMatching:
         self.reward = reward
         self.include_noise = include_noise
         self.noise_variance = data["noise_variance"]  # ... x E
+        self._noise_cov = torch.diag_embed(self.noise_variance)
         # Everything that depends only on data and θ is computed here, once.
         self.dynamics = SEKernelMoments(
             data["inputs"], data["beta"], data["lengthscales"], data["signal_variance"], data["K_inv"]
         )
 
     def _step(self, state: Gaussian, policy_map: GaussianMap) -> tuple[Gaussian, MomentMatch]:
-        """x_t ~ N(μ, Σ) ↦ (x_{t+1}, moments of u_t), as PILCO's ``propagate``."""
+        """x_t ~ N(μ, Σ) ↦ (x_{t+1}, moments of u_t), as PILCO's ``propagate``; Σ must be exactly symmetric."""
         state = state.expand()
         mean, cov = state.mean, state.cov
         feats = self.features.moments(state)  # y = φ(x); cross_cov = cov[x, y]
@@ -79,18 +80,21 @@ class MomentMatching:
                 dim=-2,
             ),
         )
-        delta = self.dynamics(gp_in)  # Δ; gain = cov[y u]⁻¹ cov[[y u], Δ]
+        delta_mean, delta_cov, delta_gain = self.dynamics.mean_cov_gain(gp_in)  # Δ; gain = cov[y u]⁻¹ cov[[y u], Δ]
         # cov[x, [y u]] = [cov[x, y], cov[x, y] Σ_y⁻¹ cov[y, u]], then cov[x, Δ] likewise.
-        cov_x_in = torch.cat([feats.cross_cov, feats.cross_cov @ act.gain], dim=-1)
-        cov_x_delta = cov_x_in @ delta.gain
-        next_cov = cov + delta.cov + cov_x_delta + cov_x_delta.mT
+        cov_x_in = torch.cat([feats.cross_cov, batch_matmul(feats.cross_cov, act.gain)], dim=-1)
+        cov_x_delta = batch_matmul(cov_x_in, delta_gain)
+        # Σ and cov Δ are exactly symmetric, and so is each sum below: no symmetrize needed.
+        next_cov = (cov + delta_cov) + (cov_x_delta + cov_x_delta.mT)
         if self.include_noise:
-            next_cov = next_cov + torch.diag_embed(self.noise_variance)
-        return Gaussian(mean + delta.mean, symmetrize(next_cov)), act
+            next_cov = next_cov + self._noise_cov
+        return Gaussian(mean + delta_mean, next_cov), act
 
     def _with_policy_batch(self, state: Gaussian) -> Gaussian:
-        """``state`` in the propagation's dtype, its batch broadcast against a batched policy's (`R`, restarts)."""
+        """``state`` in the propagation's dtype, its covariance symmetrized, its batch broadcast against a batched
+        policy's (`R`, restarts)."""
         state = state.to(dtype=self.dtype)
+        state = Gaussian(state.mean, symmetrize(state.cov))
         if not self.policy.batch_shape:
             return state
         batch = torch.broadcast_shapes(state.batch_shape, self.policy.batch_shape)
