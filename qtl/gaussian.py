@@ -48,8 +48,6 @@ class Gaussian:
     def expand(self) -> Gaussian:
         """The same distribution with mean and covariance broadcast to the full batch shape."""
         batch = self.batch_shape
-        if self.mean.shape[:-1] == batch and self.cov.shape[:-2] == batch:
-            return self
         return Gaussian(self.mean.expand(*batch, self.dim), self.cov.expand(*batch, self.dim, self.dim))
 
     def __getitem__(self, index: int | slice | tuple) -> Gaussian:
@@ -93,6 +91,18 @@ class MomentMatch:
 
 # A map of Gaussian inputs with exact (or moment-matched) output moments.
 GaussianMap = Callable[[Gaussian], MomentMatch]
+
+
+def full_batch(state: Gaussian) -> Gaussian:
+    """``state`` when mean and covariance already have the full batch shape, else ``state.expand()``.
+
+    Unlike ``expand`` it adds no (view) operation to the autograd graph when there is nothing to
+    broadcast, which changes the order gradients accumulate in: round-off only.
+    """
+    batch = state.batch_shape
+    if state.mean.shape[:-1] == batch and state.cov.shape[:-2] == batch:
+        return state
+    return state.expand()
 
 
 @functools.lru_cache(maxsize=64)

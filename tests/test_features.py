@@ -13,9 +13,17 @@ from hypothesis import strategies as st
 from envs.rewards import augment_angles
 from qtl.features import AngleFeatures, trig_moments
 from qtl.gaussian import Gaussian
+from qtl.kernels.formulation import FORMULATIONS, formulation
 
 DTYPE = torch.float64
 NUM_SAMPLES = 100_000
+
+
+@pytest.fixture(autouse=True, params=FORMULATIONS)
+def moments_formulation(request):
+    """Every test of this module under each formulation of the moments (a comparison sets its own)."""
+    with formulation(request.param):
+        yield request.param
 
 
 @pytest.mark.parametrize("angle_dims", [(), (2,), (0, 3), (3, 1)])
@@ -115,3 +123,76 @@ def test_trig_moments_stay_finite_for_huge_variances():
     torch.testing.assert_close(out_cov, 0.5 * torch.eye(4, dtype=torch.float64), atol=1e-12, rtol=0)
     (out_cov.sum() + out_mean.sum()).backward()
     assert torch.isfinite(mean.grad).all() and torch.isfinite(cov.grad).all()
+
+
+# --- The fused formulation against the reference one (qtl.kernels.formulation), values and gradients. ---
+
+REFERENCE_RTOL = 1e-12  # relative to the largest entry of each compared tensor
+
+
+def assert_rel_close(got: torch.Tensor, want: torch.Tensor, what: str = "", rtol: float = REFERENCE_RTOL) -> None:
+    """max |got − want| <= rtol · max |want| (shapes equal)."""
+    assert got.shape == want.shape, f"{what}: shape {tuple(got.shape)} != {tuple(want.shape)}"
+    err, scale = (got - want).abs().max().item(), want.abs().max().item()
+    assert err <= rtol * scale, f"{what}: max error {err:.3e} > {rtol:g} x {scale:.3e}"
+
+
+def random_state(dim: int, batch: tuple[int, ...], seed: int, scale: float = 1.0) -> tuple[torch.Tensor, torch.Tensor]:
+    """A mean `batch x D` and a covariance root `batch x D x D` (cov = root rootᵀ), both requiring grad."""
+    gen = torch.Generator().manual_seed(seed)
+    mean = torch.randn(*batch, dim, generator=gen, dtype=DTYPE).requires_grad_()
+    root = (scale * torch.randn(*batch, dim, dim, generator=gen, dtype=DTYPE) / dim**0.5).requires_grad_()
+    return mean, root
+
+
+def assert_formulations_agree(fn, inputs: tuple[torch.Tensor, ...], seed: int = 0) -> None:
+    """``fn(*inputs)`` (a tuple of tensors) is the same, to REFERENCE_RTOL in values and in the gradients w.r.t.
+    every input that requires grad, under the fused and the reference formulation."""
+    with formulation("fused"):
+        got = fn(*inputs)
+    with formulation("reference"):
+        want = fn(*inputs)
+    gen = torch.Generator().manual_seed(seed)
+    weights = [torch.randn(w.shape, generator=gen, dtype=DTYPE) for w in want]
+    for i, (g, w) in enumerate(zip(got, want, strict=True)):
+        assert_rel_close(g, w, f"output {i}")
+    leaves = [t for t in inputs if t.requires_grad]
+
+    def gradients(outputs):
+        loss = sum((o * w).sum() for o, w in zip(outputs, weights, strict=True))
+        return torch.autograd.grad(loss, leaves, allow_unused=True)
+
+    for i, (g, w) in enumerate(zip(gradients(got), gradients(want), strict=True)):
+        if w is None:
+            assert g is None or not g.any(), f"gradient {i}: expected none"
+        else:
+            assert_rel_close(g, w, f"gradient {i}")
+
+
+@pytest.mark.parametrize(("num", "batch", "scale"), list(itertools.product([1, 2, 3], [(), (3,), (2, 3)], [0.3, 3.0])))
+def test_trig_moments_formulations_agree(num, batch, scale):
+    mean, root = random_state(num, batch, seed=num + 10 * len(batch), scale=scale)
+    assert_formulations_agree(lambda m, r: trig_moments(m, r @ r.mT), (mean, root))
+
+
+def test_trig_moments_formulations_agree_at_zero_covariance():
+    # σ_ij = 0 exactly (a diagonal Σ, one zero variance): the expm1 branches meet there, the gradients
+    # must too. Σ = (A + Aᵀ)/2, so that the gradient is that of a symmetric Σ (as in a rollout).
+    mean = torch.tensor([0.4, -1.2, 2.0], dtype=DTYPE, requires_grad=True)
+    cov_param = torch.diag(torch.tensor([0.3, 0.0, 1.5], dtype=DTYPE)).requires_grad_()
+    assert_formulations_agree(lambda m, a: trig_moments(m, 0.5 * (a + a.mT)), (mean, cov_param))
+
+
+@pytest.mark.parametrize(
+    ("angle_dims", "batch"), list(itertools.product([(2,), (0, 3), (3, 1), (0, 1, 2, 3)], [(), (3,), (2, 3)]))
+)
+def test_angle_moments_formulations_agree(angle_dims, batch):
+    features = AngleFeatures(4, angle_dims)
+    mean, root = random_state(4, batch, seed=len(angle_dims) + len(batch))
+
+    def moments(m, r):
+        out = features.moments(Gaussian(m, r @ r.mT))
+        return out.mean, out.cov, out.cross_cov, out.gain
+
+    assert_formulations_agree(moments, (mean, root))
+

@@ -14,8 +14,9 @@ import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
-from qtl.gaussian import Gaussian, MomentMatch, batch_matmul, identity, symmetrize
+from qtl.gaussian import Gaussian, MomentMatch, batch_matmul, full_batch, identity, symmetrize
 from qtl.kernels.exp_sum import weighted_exp_sum
+from qtl.kernels.formulation import fused
 
 
 class _InverseHalfLogdet(torch.autograd.Function):
@@ -125,19 +126,32 @@ class SEKernelMoments:
             weights = weights.index_add(weights.dim() - 3, pair_of.diagonal(), -K_inv)
         self.weights = weights
 
+    def _check_dim(self, state: Gaussian) -> None:
+        """A ValueError unless the input is `D`-dimensional, as the regressor's inputs."""
+        if state.dim != self.inputs.shape[-1]:
+            raise ValueError(f"expected a {self.inputs.shape[-1]}-D input, got {state.dim}-D")
+
     def __call__(self, state: Gaussian) -> MomentMatch:
         """Mean `... x E`, covariance `... x E x E` and input–output terms `... x D x E`."""
-        state = state.expand()
-        mean, cov, gain = self.mean_cov_gain(state)
+        self._check_dim(state)
+        if not fused():
+            state = state.expand()
+            return self._reference_call(state.mean, state.cov)
+        state = full_batch(state)
+        mean, cov, gain = self._fused_call(state.mean, state.cov)
         return MomentMatch(mean=mean, cov=cov, cross_cov=batch_matmul(state.cov, gain), gain=gain)
 
     def mean_cov_gain(self, state: Gaussian) -> tuple[Tensor, Tensor, Tensor]:
-        """Mean `... x E`, covariance `... x E x E` and gain Σ⁻¹ cov[x, f] `... x D x E`, without cov[x, f]."""
-        mean, cov = state.mean, state.cov
-        dim = mean.shape[-1]
-        if dim != self.inputs.shape[-1]:
-            raise ValueError(f"expected a {self.inputs.shape[-1]}-D input, got {dim}-D")
-        eye = identity(dim, mean.dtype, mean.device)
+        """Mean `... x E`, covariance `... x E x E` and gain Σ⁻¹ cov[x, f] `... x D x E`: all but cov[x, f]."""
+        if not fused():
+            out = self(state)
+            return out.mean, out.cov, out.gain
+        self._check_dim(state)
+        return self._fused_call(state.mean, state.cov)
+
+    def _fused_call(self, mean: Tensor, cov: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """Mean, covariance and gain, fused formulation (one factorisation of all B_a and R̃_ab, constant maps)."""
+        eye = identity(mean.shape[-1], mean.dtype, mean.device)
         nu = self._inputs - mean[..., None, None, :]  # ... x 1 x n x D, x_i − μ
 
         # B_a (mean, per output a) and R̃_ab (second moments, per pair), diag(c) Σ diag(c) + I, inverted at once.
@@ -178,3 +192,57 @@ class SEKernelMoments:
         if self._model_variance is not None:
             out_cov = out_cov + self._model_variance
         return out_mean, out_cov, gain
+
+    def _reference_call(self, mean: Tensor, cov: Tensor) -> MomentMatch:
+        """:meth:`__call__`, reference formulation: two Cholesky factorisations and solves, outer products."""
+        dim = mean.shape[-1]
+        eye = torch.eye(dim, dtype=mean.dtype, device=mean.device)
+        nu = self.inputs[..., None, :, :] - mean[..., None, None, :]  # ... x 1 x n x D, x_i − μ
+
+        # Mean and input–output covariance, per output a.
+        inv_ls = self.inv_ls
+        scaled = nu * inv_ls[..., :, None, :]  # ... x E x n x D, Λ_a^{-1/2}(x_i − μ)
+        b_mat = inv_ls[..., :, :, None] * cov[..., None, :, :] * inv_ls[..., :, None, :] + eye
+        chol_b = torch.linalg.cholesky(b_mat)  # ... x E x D x D
+        solved = torch.cholesky_solve(scaled.mT, chol_b).mT  # B⁻¹ Λ^{-1/2} ν
+        half_logdet_b = torch.diagonal(chol_b, dim1=-2, dim2=-1).log().sum(-1)
+        # q_ai = α_a² |B_a|^{-1/2} exp(−½ ν_iᵀ(Σ + Λ_a)⁻¹ν_i) = E[k_a(x_i, x)].
+        log_q = (self.log_sf2 - half_logdet_b)[..., None] - 0.5 * (scaled * solved).sum(-1)
+        bq = self.beta * log_q.exp()  # ... x E x n
+        out_mean = bq.sum(-1)  # ... x E
+        gain = ((bq[..., None] * solved).sum(-2) * inv_ls).mT  # ... x D x E, (Σ + Λ_a)⁻¹ Σ_i β q ν
+
+        # Second moments of all unordered output pairs at once (PILCO's Q matrices).
+        inv_a, inv_b, scale = self.inv_ls2_a, self.inv_ls2_b, self.scale_ab
+        scaled_cov = scale[..., :, None] * cov[..., None, :, :] * scale[..., None, :]
+        chol_r = torch.linalg.cholesky(scaled_cov + eye)  # R̃ = D Σ D + I, D = √(Λ_a⁻¹ + Λ_b⁻¹)
+        half_logdet_r = torch.diagonal(chol_r, dim1=-2, dim2=-1).log().sum(-1)  # ... x P
+        # X = R̃⁻¹ D Σ D, so that ½ zᵀ R⁻¹ Σ z = ½ (D⁻¹z)ᵀ X (D⁻¹z) with z = Λ_a⁻¹ν_i + Λ_b⁻¹ν_j.
+        x_mat = symmetrize(torch.cholesky_solve(scaled_cov, chol_r))
+        left = nu * (inv_a / scale)[..., :, None, :]  # ... x P x n x D, D⁻¹Λ_a⁻¹ν_i
+        right = nu * (inv_b / scale)[..., :, None, :]  # D⁻¹Λ_b⁻¹ν_j
+        left_x = left @ x_mat
+        nu2 = nu.square()
+        log_sf2 = self.log_sf2
+        # log Q_ij = u_i + v_j + (D⁻¹Λ_a⁻¹ν_i)ᵀ X (D⁻¹Λ_b⁻¹ν_j) − ½ log|R̃|, with
+        # u_i = log α_a² − ½ ν_iᵀΛ_a⁻¹ν_i + ½ (·)ᵀX(·), and likewise v_j for output b.
+        u = (
+            log_sf2[..., self.pair_a, None]
+            - 0.5 * (nu2 * inv_a[..., :, None, :]).sum(-1)
+            + 0.5 * (left_x * left).sum(-1)
+        )
+        v = (
+            log_sf2[..., self.pair_b, None]
+            - 0.5 * (nu2 * inv_b[..., :, None, :]).sum(-1)
+            + 0.5 * ((right @ x_mat) * right).sum(-1)
+        )
+        ones = torch.ones_like(u)[..., None]
+        lhs = torch.cat([left_x, u[..., None], ones], dim=-1)  # ... x P x n x (D + 2)
+        rhs = torch.cat([right, ones, v[..., None]], dim=-1)
+        second = torch.exp(-half_logdet_r) * weighted_exp_sum(lhs, rhs, self.weights)  # ... x P
+        num_out = out_mean.shape[-1]
+        second = second[..., self.pair_of].unflatten(-1, (num_out, num_out))
+        out_cov = second - out_mean[..., :, None] * out_mean[..., None, :]
+        if self.with_model_variance:
+            out_cov = out_cov + torch.diag_embed(self.signal_variance).to(out_cov)
+        return MomentMatch(mean=out_mean, cov=symmetrize(out_cov), cross_cov=cov @ gain, gain=gain)

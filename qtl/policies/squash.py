@@ -9,8 +9,9 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from qtl.features import trig_map, trig_stats, trig_terms
-from qtl.gaussian import Gaussian, GaussianMap, MomentMatch, symmetrize
+from qtl.features import reference_trig_moments, trig_map, trig_stats, trig_terms
+from qtl.gaussian import Gaussian, GaussianMap, MomentMatch, compose, full_batch, symmetrize
+from qtl.kernels.formulation import fused
 from qtl.policies.base import Policy
 
 # u = u_max (SIN_WEIGHT sin z + SIN3_WEIGHT sin(SIN3_FREQ z)): the third-order Fourier
@@ -84,9 +85,30 @@ def _squash_terms(mean: Tensor, cov: Tensor, weights: _SquashWeights) -> tuple[T
     return out_mean, out_cov, slope
 
 
+def _reference_sin_squash_moments(state: Gaussian, bound: Tensor) -> MomentMatch:
+    """:func:`sin_squash_moments`, reference formulation: the lift φ = [z, 3z] and the full (sin, cos) moments of φ."""
+    state = state.expand()
+    num = state.dim
+    eye = torch.eye(num, dtype=state.dtype, device=state.mean.device)
+    lift = torch.cat([eye, SIN3_FREQ * eye], dim=0)  # φ = A z = [z, 3z]: 2F x F
+    phi_mean = state.mean @ lift.mT
+    phi_cov = lift @ state.cov @ lift.mT
+    trig_mean, trig_cov, trig_gain = reference_trig_moments(phi_mean, phi_cov)
+    sines = slice(0, None, 2)  # trig_moments interleaves (sin, cos) per angle
+    # u = L sin φ with L = [9/8 diag(u_max), 1/8 diag(u_max)].
+    mix = torch.cat([SIN_WEIGHT * torch.diag(bound), SIN3_WEIGHT * torch.diag(bound)], dim=-1).to(phi_mean)
+    mean = trig_mean[..., sines] @ mix.mT
+    cov = mix @ trig_cov[..., sines, sines] @ mix.mT
+    # Stein's lemma through the linear lift: E[∂u/∂z]ᵀ = Aᵀ E[∂ sin φ/∂φ]ᵀ Lᵀ.
+    gain = lift.mT @ trig_gain[..., sines] @ mix.mT
+    return MomentMatch(mean=mean, cov=symmetrize(cov), cross_cov=state.cov @ gain, gain=gain)
+
+
 def sin_squash_moments(state: Gaussian, bound: Tensor) -> MomentMatch:
     """Exact mean, covariance and input–output terms of :func:`sin_squash` for z ~ N(μ, Σ)."""
-    state = state.expand()
+    if not fused():
+        return _reference_sin_squash_moments(state, bound)
+    state = full_batch(state)
     mean, cov, slope = _squash_terms(state.mean, state.cov, _SquashWeights.of(bound.to(state.mean)))
     gain = torch.diag_embed(slope)  # sin_squash acts elementwise: E[∂u/∂z]ᵀ is diagonal
     return MomentMatch(mean=mean, cov=symmetrize(cov), cross_cov=state.cov * slope[..., None, :], gain=gain)
@@ -117,6 +139,8 @@ class SquashedPolicy(Policy):
 
         def moments(state: Gaussian) -> MomentMatch:
             pre = inner(state)
+            if not fused():
+                return compose(pre, _reference_sin_squash_moments(pre.output, self.action_bound.to(pre.mean)))
             dtype = pre.mean.dtype
             if dtype not in weights:
                 weights[dtype] = _SquashWeights.of(self.action_bound.to(pre.mean))

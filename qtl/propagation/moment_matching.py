@@ -20,8 +20,9 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
-from qtl.gaussian import Gaussian, GaussianMap, MomentMatch, batch_matmul, symmetrize
+from qtl.gaussian import Gaussian, GaussianMap, MomentMatch, batch_matmul, full_batch, symmetrize
 from qtl.kernels import SEKernelMoments
+from qtl.kernels.formulation import fused
 from qtl.policies.base import Policy
 from qtl.propagation.base import DynamicsSource, Rollout
 from qtl.propagation.gp_cache import propagation_inputs
@@ -64,22 +65,14 @@ class MomentMatching:
         )
 
     def _step(self, state: Gaussian, policy_map: GaussianMap) -> tuple[Gaussian, MomentMatch]:
-        """x_t ~ N(μ, Σ) ↦ (x_{t+1}, moments of u_t), as PILCO's ``propagate``; Σ must be exactly symmetric."""
-        state = state.expand()
+        """x_t ~ N(μ, Σ) ↦ (x_{t+1}, moments of u_t), as PILCO's ``propagate`` (fused: Σ exactly symmetric)."""
+        if not fused():
+            return self._reference_step(state.expand(), policy_map)
+        state = full_batch(state)
         mean, cov = state.mean, state.cov
         feats = self.features.moments(state)  # y = φ(x); cross_cov = cov[x, y]
         act = policy_map(feats.output)  # u = π(y); cross_cov = cov[y, u]
-        # The GP input [y, u] as one Gaussian.
-        gp_in = Gaussian(
-            torch.cat([feats.mean, act.mean], dim=-1),
-            torch.cat(
-                [
-                    torch.cat([feats.cov, act.cross_cov], dim=-1),
-                    torch.cat([act.cross_cov.mT, act.cov], dim=-1),
-                ],
-                dim=-2,
-            ),
-        )
+        gp_in = _joint_input(feats, act)
         delta_mean, delta_cov, delta_gain = self.dynamics.mean_cov_gain(gp_in)  # Δ; gain = cov[y u]⁻¹ cov[[y u], Δ]
         # cov[x, [y u]] = [cov[x, y], cov[x, y] Σ_y⁻¹ cov[y, u]], then cov[x, Δ] likewise.
         cov_x_in = torch.cat([feats.cross_cov, batch_matmul(feats.cross_cov, act.gain)], dim=-1)
@@ -90,11 +83,29 @@ class MomentMatching:
             next_cov = next_cov + self._noise_cov
         return Gaussian(mean + delta_mean, next_cov), act
 
+    def _reference_step(self, state: Gaussian, policy_map: GaussianMap) -> tuple[Gaussian, MomentMatch]:
+        """:meth:`_step`, reference formulation: symmetrized after each step."""
+        mean, cov = state.mean, state.cov
+        feats = self.features.moments(state)  # y = φ(x); cross_cov = cov[x, y]
+        act = policy_map(feats.output)  # u = π(y); cross_cov = cov[y, u]
+        gp_in = _joint_input(feats, act)
+        delta = self.dynamics(gp_in)  # Δ; gain = cov[y u]⁻¹ cov[[y u], Δ]
+        # cov[x, [y u]] = [cov[x, y], cov[x, y] Σ_y⁻¹ cov[y, u]], then cov[x, Δ] likewise.
+        cov_x_in = torch.cat([feats.cross_cov, feats.cross_cov @ act.gain], dim=-1)
+        cov_x_delta = cov_x_in @ delta.gain
+        next_cov = cov + delta.cov + cov_x_delta + cov_x_delta.mT
+        if self.include_noise:
+            next_cov = next_cov + torch.diag_embed(self.noise_variance)
+        return Gaussian(mean + delta.mean, symmetrize(next_cov)), act
+
     def _with_policy_batch(self, state: Gaussian) -> Gaussian:
-        """``state`` in the propagation's dtype, its covariance symmetrized, its batch broadcast against a batched
-        policy's (`R`, restarts)."""
+        """``state`` in the propagation's dtype, its batch broadcast against a batched policy's (`R`, restarts).
+
+        The fused step needs an exactly symmetric Σ (it keeps it so): the start's is symmetrized.
+        """
         state = state.to(dtype=self.dtype)
-        state = Gaussian(state.mean, symmetrize(state.cov))
+        if fused():
+            state = Gaussian(state.mean, symmetrize(state.cov))
         if not self.policy.batch_shape:
             return state
         batch = torch.broadcast_shapes(state.batch_shape, self.policy.batch_shape)
@@ -136,6 +147,20 @@ class MomentMatching:
     def expected_return(self, start: Gaussian, horizon: int) -> Tensor:
         """V^π(x_0) = Σ_{t=1..H} E[r(x_t)] (Eq. 4): `...`, differentiable in ψ."""
         return self.rollout(start, horizon).value
+
+
+def _joint_input(feats: MomentMatch, act: MomentMatch) -> Gaussian:
+    """The GP input [y, u] as one Gaussian: mean `... x (Y + F)`, covariance [[cov y, cov[y, u]], [·ᵀ, cov u]]."""
+    return Gaussian(
+        torch.cat([feats.mean, act.mean], dim=-1),
+        torch.cat(
+            [
+                torch.cat([feats.cov, act.cross_cov], dim=-1),
+                torch.cat([act.cross_cov.mT, act.cov], dim=-1),
+            ],
+            dim=-2,
+        ),
+    )
 
 
 def _stack_states(states: Sequence[Gaussian]) -> Gaussian:

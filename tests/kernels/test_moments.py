@@ -11,10 +11,20 @@ from hypothesis import strategies as st
 
 from qtl.gaussian import Gaussian
 from qtl.kernels import SEKernelMoments
+from qtl.kernels.formulation import FORMULATIONS, formulation
+from qtl.kernels.moments import inverse_and_half_logdet
 from qtl.models import GPPosteriorCache
+from tests.test_features import assert_formulations_agree, assert_rel_close, random_state
 
 DTYPE = torch.float64
 NUM_SAMPLES = 100_000
+
+
+@pytest.fixture(autouse=True, params=FORMULATIONS)
+def moments_formulation(request):
+    """Every test of this module under each formulation of the moments (a comparison sets its own)."""
+    with formulation(request.param):
+        yield request.param
 
 
 def gp_moments(cache: GPPosteriorCache) -> SEKernelMoments:
@@ -117,3 +127,79 @@ def test_covariance_is_psd(model, psd, cov_factory, seed, scale, shift):
         -2,
     )
     psd(joint)
+
+
+# --- The fused formulation against the reference one (qtl.kernels.formulation), values and gradients. ---
+
+
+def regressor_tensors(caches, requires_grad: bool) -> dict[str, torch.Tensor]:
+    """inputs, beta, lengthscales, signal variance (and K_inv) of one cache or of caches stacked as `M`."""
+    def stacked(get):
+        return torch.stack([get(c) for c in caches]) if len(caches) > 1 else get(caches[0])
+
+    tensors = {
+        "inputs": stacked(lambda c: c.inputs),
+        "beta": stacked(lambda c: c.beta),
+        "lengthscales": stacked(lambda c: c.hyperparameters.lengthscales),
+        "signal_variance": stacked(lambda c: c.hyperparameters.signal_variance),
+    }
+    tensors = {k: v.detach().clone().requires_grad_(requires_grad) for k, v in tensors.items()}
+    tensors["K_inv"] = stacked(lambda c: c.K_inv)
+    return tensors
+
+
+@pytest.mark.parametrize(
+    ("models", "state_batch", "with_variance"),
+    [(1, (), True), (1, (3,), True), (2, (3, 1), True), (1, (), False), (1, (3,), False), (2, (3, 1), False)],
+)
+def test_formulations_agree(gp_factory, models, state_batch, with_variance):
+    """Values and gradients (w.r.t. the input distribution and the regressor's tensors, as a policy's ψ) of the
+    fused and the reference formulation; restarts `R` as the state batch, stacked models `M` as the regressor's."""
+    caches = [gp_factory(30, 3, 1, (1,), seed=7 + m).posterior_cache() for m in range(models)]
+    tensors = regressor_tensors(caches, requires_grad=True)
+    K_inv = tensors.pop("K_inv") if with_variance else None
+    mean, root = random_state(5, state_batch, seed=models + len(state_batch))
+
+    def moments(m, r, *params):
+        out = SEKernelMoments(*params, K_inv=K_inv)(Gaussian(m, r @ r.mT))
+        return out.mean, out.cov, out.cross_cov, out.gain
+
+    params = tuple(tensors[k] for k in ("inputs", "beta", "lengthscales", "signal_variance"))
+    assert_formulations_agree(moments, (mean, root, *params))
+
+
+def test_mean_cov_gain_is_call_without_cross_cov(model):
+    moments = gp_moments(model.posterior_cache())
+    state = Gaussian(torch.linspace(-1, 1, 6, dtype=DTYPE), 0.3 * torch.eye(6, dtype=DTYPE))
+    full = moments(state)
+    for got, want in zip(moments.mean_cov_gain(state), (full.mean, full.cov, full.gain), strict=True):
+        assert torch.equal(got, want)
+    with pytest.raises(ValueError, match="6-D input"):
+        moments.mean_cov_gain(Gaussian(torch.zeros(5, dtype=DTYPE), torch.eye(5, dtype=DTYPE)))
+
+
+@pytest.mark.parametrize("batch", [(), (4,), (2, 3)])
+def test_inverse_and_half_logdet(batch):
+    gen = torch.Generator().manual_seed(len(batch))
+    root = torch.randn(*batch, 4, 4, generator=gen, dtype=DTYPE)
+    mat = (root @ root.mT + torch.eye(4, dtype=DTYPE)).requires_grad_()
+    inverse, half_logdet = inverse_and_half_logdet(mat)
+    assert torch.equal(inverse, inverse.mT)
+    assert_rel_close(inverse, torch.linalg.inv(mat))
+    assert_rel_close(half_logdet, 0.5 * torch.logdet(mat))
+    # The closed-form backward against autograd through Cholesky factor, solve and log-determinant.
+    weights = torch.randn(*batch, 4, 4, generator=gen, dtype=DTYPE), torch.randn(batch, generator=gen, dtype=DTYPE)
+    (got,) = torch.autograd.grad((inverse * weights[0]).sum() + (half_logdet * weights[1]).sum(), mat)
+    chol = torch.linalg.cholesky(mat)
+    plain = torch.cholesky_solve(torch.eye(4, dtype=DTYPE).expand_as(mat), chol)
+    plain_half_logdet = torch.diagonal(chol, dim1=-2, dim2=-1).log().sum(-1)
+    (want,) = torch.autograd.grad((plain * weights[0]).sum() + (plain_half_logdet * weights[1]).sum(), mat)
+    assert_rel_close(got, want)
+    assert torch.autograd.gradcheck(lambda r: inverse_and_half_logdet(r @ r.mT + torch.eye(4, dtype=DTYPE)),
+                                    (root[..., :, :].clone().requires_grad_(),))
+
+
+def test_inverse_and_half_logdet_refuses_indefinite_matrices():
+    # Policy search treats a LinAlgError as an invalid ψ: the fused factorisation must still raise it.
+    with pytest.raises(torch.linalg.LinAlgError):
+        inverse_and_half_logdet(torch.diag(torch.tensor([1.0, -1.0], dtype=DTYPE)))

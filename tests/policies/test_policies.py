@@ -10,6 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from qtl.gaussian import Gaussian
+from qtl.kernels.formulation import FORMULATIONS, formulation
 from qtl.policies import (
     POLICY_NOISE_VARIANCE,
     LinearPolicy,
@@ -18,9 +19,18 @@ from qtl.policies import (
     sin_squash,
     sin_squash_moments,
 )
+from tests.propagation.restarts import spread_restarts
+from tests.test_features import assert_formulations_agree, random_state
 
 DTYPE = torch.float64
 NUM_SAMPLES = 100_000
+
+
+@pytest.fixture(autouse=True, params=FORMULATIONS)
+def moments_formulation(request):
+    """Every test of this module under each formulation of the moments (a comparison sets its own)."""
+    with formulation(request.param):
+        yield request.param
 
 
 def make_rbf(input_dim: int = 3, output_dim: int = 2, num_basis: int = 6, seed: int = 0) -> RBFPolicy:
@@ -205,3 +215,33 @@ def test_rejects_bad_shapes():
         LinearPolicy(3, 1, weight=torch.zeros(3, 1, dtype=DTYPE))
     with pytest.raises(ValueError):
         SquashedPolicy(make_rbf(), [1.0, -1.0])
+
+
+# --- The fused formulation against the reference one (qtl.kernels.formulation), values and gradients. ---
+
+
+@pytest.mark.parametrize(("num", "batch", "scale"), list(itertools.product([1, 2, 3], [(), (3,), (2, 3)], [0.3, 2.0])))
+def test_squash_moments_formulations_agree(num, batch, scale):
+    mean, root = random_state(num, batch, seed=num + 10 * len(batch), scale=scale)
+    bound = torch.linspace(0.5, 3.0, num, dtype=DTYPE).requires_grad_()
+
+    def moments(m, r, b):
+        out = sin_squash_moments(Gaussian(m, r @ r.mT), b)
+        return out.mean, out.cov, out.cross_cov, out.gain
+
+    assert_formulations_agree(moments, (mean, root, bound))
+
+
+@pytest.mark.parametrize(("inner", "restarts"), list(itertools.product(["rbf", "linear"], [1, 3])))
+def test_squashed_policy_moments_formulations_agree(inner, restarts):
+    """SquashedPolicy's fused chaining equals compose(inner, squash) of the reference, in value and in ∂/∂ψ."""
+    policy = SquashedPolicy(make_policy(inner), [2.0, 0.5])
+    if restarts > 1:
+        policy = spread_restarts(policy, restarts)
+    mean, root = random_state(3, (restarts,) if restarts > 1 else (), seed=restarts)
+
+    def moments(m, r, *psi):
+        out = policy.prepare()(Gaussian(m, r @ r.mT))
+        return out.mean, out.cov, out.cross_cov, out.gain
+
+    assert_formulations_agree(moments, (mean, root, *policy.parameters()))
