@@ -17,6 +17,7 @@ from qtl.episodes import Actor, policy_actor
 from qtl.features import AngleFeatures
 from qtl.gaussian import Gaussian
 from qtl.kernels import use_backend
+from qtl.kernels.formulation import use_formulation
 from qtl.models import DynamicsGP, GPHyperparameters, ModelFit, PreviousFit
 from qtl.policies import Policy, SquashedPolicy
 from qtl.policy_search import SearchResult
@@ -137,6 +138,7 @@ def build(cfg: DictConfig) -> Parts:
     device = resolve_device(cfg.device)
     task = Task.from_config(OmegaConf.to_container(cfg.task, resolve=True))
     kernel_backend = use_backend(cfg.kernels.backend)  # native requested but not built: a UserError here
+    use_formulation(cfg.kernels.moments)  # an unknown formulation: a UserError here
     return Parts(
         seed=int(cfg.seed),
         dtype=dtype,

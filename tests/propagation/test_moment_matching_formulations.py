@@ -5,11 +5,13 @@ from __future__ import annotations
 import pytest
 import torch
 
+from qtl.build import build
+from qtl.errors import UserError
 from qtl.gaussian import Gaussian
-from qtl.kernels.formulation import formulation
+from qtl.kernels.formulation import active_formulation, formulation, use_formulation
 from qtl.policies import LinearPolicy, Policy, RBFPolicy, SquashedPolicy
 from qtl.propagation import MomentMatching
-from tests.helpers import gradcheck_value_wrt_policy_and_start, quadratic_reward
+from tests.helpers import gradcheck_value_wrt_policy_and_start, quadratic_reward, tiny_config
 from tests.propagation.restarts import spread_restarts
 from tests.test_features import assert_rel_close
 
@@ -78,3 +80,15 @@ def test_gradcheck_fused_three_step_rollout(gp_factory):
     start = Gaussian(torch.tensor([0.1, 0.4], dtype=DTYPE), 0.05 * torch.eye(2, dtype=DTYPE))
     with formulation("fused"):
         assert gradcheck_value_wrt_policy_and_start(policy, lambda s: propagator.expected_return(s, 3), start)
+
+
+def test_kernels_moments_is_chosen_in_build_and_a_bad_one_is_refused():
+    try:
+        build(tiny_config("kernels.moments=fused"))
+        assert active_formulation() == "fused"
+        build(tiny_config())
+        assert active_formulation() == "reference"  # the default
+        with pytest.raises(UserError, match=r"kernels\.moments must be one of"):
+            build(tiny_config("kernels.moments=fast"))
+    finally:
+        use_formulation("reference")
