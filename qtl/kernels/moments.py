@@ -59,7 +59,9 @@ class SEKernelMoments:
     `... x E x n x n` = (K_a + σ_ε²I)⁻¹ the predictive covariance includes the expected GP
     posterior variance α_a² − tr(K_inv_a Q_aa) (PILCO gp0); without, f is a deterministic
     RBF network (gp2). Everything that depends only on these tensors is computed here, once,
-    in the shapes the per-call arithmetic broadcasts against.
+    in the shapes the per-call arithmetic broadcasts against. A call follows the formulation in
+    effect (:mod:`qtl.kernels.formulation`): ``reference`` factorises B_a and R̃_ab separately,
+    ``fused`` inverts them in one batch with a closed-form backward and uses X = I − R̃⁻¹.
     """
 
     def __init__(

@@ -11,6 +11,10 @@ Output noise: the predicted Δ is the latent transition (PILCO gp0, "predictive 
 contain uncertainty about the function, but no noise"): σ_ε² is treated as measurement noise
 of the training targets and is not propagated. ``include_noise=True`` adds diag(σ_ε²) to the
 covariance of Δ at every step instead.
+
+Formulations (:mod:`qtl.kernels.formulation`): ``reference`` symmetrizes each step's covariance;
+``fused`` keeps it exactly symmetric by construction (the start's is symmetrized once) and skips
+the input–output covariance of Δ, which the step does not use.
 """
 
 from __future__ import annotations
