@@ -15,9 +15,10 @@ policy and propagation on the GPU (the targets are judged on the CPU only). Writ
 ``docs/bench/policy_search[-cuda].json``) and, unless ``--no-docs``, its section of ``docs/benchmarks.md``.
 
 In the same run (issue 18), the moment-matching search at each ``--compare-sizes`` n (default 250, float64)
-under every combination of ``kernels.backend`` {torch, native} and ``optimizer.batched`` {false, true}
-(restarts one after the other, or all in one batched rollout): the same data, model and ψ_0, each in
-its own subprocess; absolute times, ratios against torch + sequential, and the predicted returns found.
+under the ``COMPARE_VARIANTS`` of ``kernels.backend`` {torch, native}, ``optimizer.batched`` {false, true}
+(restarts one after the other, or in lockstep in one batched rollout) and ``kernels.moments`` {reference,
+fused}: the same data, model and ψ_0, each in its own subprocess; absolute times, ratios against
+torch + sequential + reference (today's defaults), and the predicted returns found.
 ``--no-compare`` skips it.
 
     .venv/bin/python scripts/bench_policy_search.py [--sizes 250 500 1000] [--dtypes float64 float32]
@@ -32,7 +33,6 @@ from __future__ import annotations
 import argparse
 import functools
 import hashlib
-import itertools
 import json
 import logging
 import statistics
@@ -66,10 +66,18 @@ from qtl.task import Task
 
 SIZES = [250, 500, 1000]
 COMPARE_SIZES = [250]
-# The comparison of issue 18: exp-sum backend x restarts batched or not, moment matching, float64.
-BACKENDS = ["torch", "native"]
+# The comparison of issue 18, moment matching, float64: (exp-sum backend, restarts batched, moment formulation).
+COMPARE_VARIANTS = [
+    ("torch", False, "reference"),  # the defaults: what the ratios are taken against
+    ("torch", True, "reference"),
+    ("native", False, "reference"),
+    ("native", True, "reference"),
+    ("torch", False, "fused"),
+    ("native", False, "fused"),
+    ("native", True, "fused"),  # every speed switch on
+]
 RESTART_MODES = {False: "sequential", True: "batched"}
-BASELINE_VARIANT = ("torch", False)  # what the ratios are taken against
+BASELINE_VARIANT = COMPARE_VARIANTS[0]
 # The loop's settings per propagator: Hydra overrides of the default `train` config.
 PROPAGATORS: dict[str, list[str]] = {
     "moment_matching": ["propagation=moment_matching", "optimizer=lbfgs"],
@@ -122,12 +130,13 @@ DESCRIPTION = (
 COMPARE_DESCRIPTION = (
     "Moment-matching policy search (the loop's `optimizer=lbfgs` settings), float64, the same data, model and ψ_0 "
     "in every row, each row in its own subprocess: the exp sums on the torch path or the native kernel "
-    "(`kernels.backend`), and the restarts one after the other or all at once (`optimizer.batched=true`: one batched "
-    "rollout of the R restarts per evaluation, one L-BFGS over their summed returns). Rollouts: calls of the "
-    "objective (one per batched evaluation); evaluations: per restart (R per batched rollout). 'rollout + gradient': "
-    "one restart; 'batched, R restarts': one rollout + gradient of the R starting points of the search at once. "
-    "Ratios are times over torch + sequential (below 1: faster). Predicted return: the best V found; per restart in "
-    "brackets (the joint L-BFGS takes other steps than R separate ones, so the values differ)."
+    "(`kernels.backend`), the restarts one after the other or all at once (`optimizer.batched=true`: each restart "
+    "runs its own L-BFGS, one batched rollout per round answers all that still run), and the per-step moment maths "
+    "as written first or in the fused formulation with fewer dispatched operations (`kernels.moments`). Rollouts: "
+    "calls of the objective (one per batched round); evaluations: per restart. 'rollout + gradient': one restart; "
+    "'batched, R restarts': one rollout + gradient of the R starting points of the search at once. Ratios are times "
+    "over torch + sequential + reference (below 1: faster). Predicted return: the best V found; per restart in "
+    "brackets (every variant runs the same algorithm per restart, so they differ by round-off and where it leads)."
 )
 
 FLOOR_DESCRIPTION = (
@@ -270,6 +279,7 @@ def measure(job: dict[str, Any]) -> dict[str, Any]:
             warm_up_optimisers()
             result.update(horizon=task.horizon, propagation=OmegaConf.to_container(cfg.propagation, resolve=True),
                           optimizer=OmegaConf.to_container(cfg.optimizer, resolve=True),
+                          kernels=OmegaConf.to_container(cfg.kernels, resolve=True),
                           kernel_backend=parts.kernel_backend, setup_rss_mib=benchlib.peak_rss_mib())
 
             # -- One rollout + gradient: a warm-up, then the median of the repeats. ------------------
@@ -330,8 +340,8 @@ def batched_rollout_grad(parts: Parts, model: DynamicsGP, policy: SquashedPolicy
     return {"batched_rollout_grad_s_median": statistics.median(times[1:]), "batched_restarts": len(states)}
 
 
-# What a comparison job adds to a job: the exp-sum backend and whether the restarts are batched.
-_VARIANT_KEYS = ("backend", "batched")
+# What a comparison job adds to a job: the exp-sum backend, whether the restarts are batched, the formulation.
+_VARIANT_KEYS = ("backend", "batched", "moments")
 
 
 def variant_overrides(job: dict[str, Any]) -> list[str]:
@@ -341,6 +351,8 @@ def variant_overrides(job: dict[str, Any]) -> list[str]:
         overrides.append(f"kernels.backend={job['backend']}")
     if "batched" in job:
         overrides.append(f"optimizer.batched={str(job['batched']).lower()}")
+    if "moments" in job:
+        overrides.append(f"kernels.moments={job['moments']}")
     return overrides
 
 
@@ -355,31 +367,36 @@ def run_job(job: dict[str, Any]) -> dict[str, Any]:
         "error": f"worker exited with {done.returncode}: {' | '.join(tail)}"}
 
 
+def _variant(row: dict[str, Any]) -> tuple[str, bool, str]:
+    """A comparison row's (backend, batched, moments); rows from before the formulation switch are 'reference'."""
+    return row["backend"], row["batched"], row.get("moments", "reference")
+
+
 def add_ratios(rows: list[dict[str, Any]]) -> None:
     """Each comparison row's times over those of torch + sequential at the same n (where both were measured)."""
     for row in rows:
-        base = next((r for r in rows if r["n"] == row["n"] and (r["backend"], r["batched"]) == BASELINE_VARIANT),
-                    None)
+        base = next((r for r in rows if r["n"] == row["n"] and _variant(r) == BASELINE_VARIANT), None)
         for key in ("search_s", "rollout_grad_s_median"):
             if base is not None and key in row and key in base:
                 row[f"{key}_ratio"] = row[key] / base[key]
 
 
 def comparison_markdown(rows: list[dict[str, Any]]) -> list[str]:
-    """The backend x restarts table."""
+    """The backend x restarts x formulation table."""
     lines = [
-        "### Restarts batched vs sequential, torch vs native exp sums (moment matching)",
+        "### Exp sums torch vs native, restarts sequential vs batched, moments reference vs fused (moment matching)",
         "",
         COMPARE_DESCRIPTION,
         "",
-        "| n | backend | restarts | policy search (s) | ratio | rollouts | evaluations | s / rollout "
+        "| n | backend | restarts | moments | policy search (s) | ratio | rollouts | evaluations | s / rollout "
         "| rollout + gradient (s) | ratio | batched, R restarts (s) | predicted return (per restart) |",
-        "| ---: | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- |",
+        "| ---: | --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- |",
     ]
     errors = []
     for r in rows:
         if "error" in r:
-            errors.append(f"{len(errors) + 1}. n = {r['n']}, {r['backend']}, {RESTART_MODES[r['batched']]}: "
+            errors.append(f"{len(errors) + 1}. n = {r['n']}, {r['backend']}, {RESTART_MODES[r['batched']]}, "
+                          f"{_variant(r)[2]}: "
                           f"`{r['error']}`")
         ratio = {key: f"{r[key]:.2f}" if key in r else "—" for key in ("search_s_ratio", "rollout_grad_s_median_ratio")}
         per_rollout = f"{r['search_s'] / r['rollouts']:.3f}" if r.get("rollouts") else "—"
@@ -388,7 +405,8 @@ def comparison_markdown(rows: list[dict[str, Any]]) -> list[str]:
         found = (f"{r['value_found']:.4g} ({', '.join(f'{v:.4g}' for v in r['run_values'])})"
                  if "value_found" in r else (f"error ({len(errors)})" if "error" in r else "—"))
         lines.append(
-            f"| {r['n']} | {r['backend']} | {RESTART_MODES[r['batched']]} | {_seconds(r, 'search_s')} | "
+            f"| {r['n']} | {r['backend']} | {RESTART_MODES[r['batched']]} | {_variant(r)[2]} | "
+            f"{_seconds(r, 'search_s')} | "
             f"{ratio['search_s_ratio']} | {r.get('rollouts', '—')} | {r.get('evaluations', '—')} | {per_rollout} | "
             f"{_seconds(r, 'rollout_grad_s_median')} | {ratio['rollout_grad_s_median_ratio']} | {batched} | {found} |"
         )
@@ -547,11 +565,11 @@ def main() -> None:
         path, models[n] = ensure_model(data_cfg, n, args.seed, args.cache_dir)
         how = "cached" if models[n]["cached"] else f"fitted in {models[n]['fit_s']:.1f} s"
         print(f"n={n}: model {how} ({path.name})", file=sys.stderr, flush=True)
-        for backend, batched in itertools.product(BACKENDS, RESTART_MODES) if n in compare_sizes else ():
+        for backend, batched, moments in COMPARE_VARIANTS if n in compare_sizes else ():
             job = {"propagator": "moment_matching", "n": n, "dtype": "float64", "model": str(path),
                    "overrides": [*args.overrides, *args.mm_overrides], "threads": args.threads,
                    "device": args.device, "repeats": args.repeats, "skip_search": False,
-                   "backend": backend, "batched": batched}
+                   "backend": backend, "batched": batched, "moments": moments}
             comparison.append(run_job(job))
             print(json.dumps({k: v for k, v in comparison[-1].items() if k not in ("propagation", "optimizer")}),
                   file=sys.stderr, flush=True)
