@@ -82,7 +82,8 @@ def main() -> None:
     solved = [r for r in results if r["first_success"] is not None and r["first_success"] < args.within]
     passed = len(solved) >= REQUIRED_SEEDS if len(results) >= JUDGED_SEEDS else None
 
-    info = {"date": benchlib.today(), "command": benchlib.command_line(), "machine": benchlib.machine(),
+    info = {"date": benchlib.today(), "commit": benchlib.commit(), "command": benchlib.command_line(),
+            "machine": benchlib.machine(),
             "overrides": overrides, "episodes_per_run": args.episodes + 1, "jobs": args.jobs, "threads": args.threads,
             "required": f"success within {args.within} episodes in >= {REQUIRED_SEEDS} of {JUDGED_SEEDS} seeds",
             "passed": passed, "results": results}
@@ -94,7 +95,8 @@ def main() -> None:
     lines = [
         f"## Cart-pole swing-up, 0.5 kg, from scratch{f' ({args.tag})' if args.tag else ''}",
         "",
-        f"`{info['command']}` — {info['date']}, {m['cpu']} ({m['cores']} cores), {args.jobs} run(s) in parallel with "
+        f"`{info['command']}` at commit {info['commit']} — "
+        f"{info['date']}, {m['cpu']} ({m['cores']} cores), {args.jobs} run(s) in parallel with "
         f"{args.threads} torch thread(s) each, torch {m['torch']}. {args.episodes + 1} episodes per seed (1 random + "
         f"{args.episodes} learned). Success: tip within 0.15 m of the target for the last 2 s. "
         f"Results: `docs/bench/{name}.json`.",

@@ -475,7 +475,8 @@ def markdown(results: list[dict[str, Any]], info: dict[str, Any], comparison: li
         "",
         DESCRIPTION,
         "",
-        f"`{info['command']}` — {info['date']}, {where}{m['cpu']} ({m['cores']} cores), "
+        f"`{info['command']}` at commit {info.get('commit', '?')} — "
+        f"{info['date']}, {where}{m['cpu']} ({m['cores']} cores), "
         f"{info['threads']} torch threads, torch {m['torch']}, {settings}. Results: `{info['output']}`.",
         "",
         *settings_lines(results),
@@ -513,7 +514,8 @@ def compare_only_markdown(info: dict[str, Any], comparison: list[dict[str, Any]]
     """The section of a ``--compare-only`` run: how it was run, then the comparison table."""
     m = info["machine"]
     return "\n".join([
-        f"`{info['command']}` — {info['date']}, {m['cpu']} ({m['cores']} cores), {info['threads']} torch threads, "
+        f"`{info['command']}` at commit {info.get('commit', '?')} — "
+        f"{info['date']}, {m['cpu']} ({m['cores']} cores), {info['threads']} torch threads, "
         f"torch {m['torch']}. Results: `{info['output']}`.",
         "",
         *comparison_markdown(comparison),
@@ -588,6 +590,7 @@ def main() -> None:
     overrides_all = [*args.overrides, *args.mm_overrides, *args.particles_overrides]
     info = {
         "date": benchlib.today(),
+        "commit": benchlib.commit(),
         "command": benchlib.command_line(),
         "machine": benchlib.machine(),
         "threads": args.threads,
