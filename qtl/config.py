@@ -363,8 +363,9 @@ class KernelsConfig:
     )
     moments: str = field(
         default="reference",
-        metadata=doc("reference | fused: the moment-matching maths (fused: ~45% fewer torch ops per step, "
-                     "the same moments to ~1e-13; round-off differs, so metrics.csv is per formulation)"),
+        metadata=doc("reference | fused | native: the moment-matching maths (fused: ~45% fewer torch ops per step, "
+                     "the same moments to ~1e-13; native: fused with its hot pieces compiled, needs the native "
+                     "build; round-off differs, so metrics.csv is per formulation)"),
     )
 
 

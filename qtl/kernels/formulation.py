@@ -1,4 +1,4 @@
-"""Which formulation of the moment-matching maths runs: the plain reference or the fused one.
+"""Which formulation of the moment-matching maths runs: the plain reference, the fused one, or its native twin.
 
 Both compute the same exact moments (angle features, SE-kernel moments, sine squashing, one
 rollout step) and agree to ~1e-13 relative in values and gradients; they differ in the order of
@@ -6,7 +6,10 @@ floating-point operations, so a run's ``metrics.csv`` is reproduced exactly by t
 formulation (policy search amplifies round-off, as with ``kernels.backend``). ``reference`` is the
 plain torch formulation; ``fused`` dispatches ~45% fewer torch operations per rollout step
 (forward and backward): constant linear maps instead of gathers and block assembly, one Cholesky
-factorisation per call with a closed-form backward, no redundant symmetrizing.
+factorisation per call with a closed-form backward, no redundant symmetrizing. ``native`` is the
+fused formulation with its hot pieces (SE-kernel moments, angle features, sine squashing) each one
+compiled call forward and one backward (`qtl/kernels/native/`, float64 on the CPU; other dtypes and
+devices take the fused torch code); it needs the native build.
 """
 
 from __future__ import annotations
@@ -16,26 +19,45 @@ from collections.abc import Iterator
 
 from qtl.errors import UserError
 
-FORMULATIONS = ("reference", "fused")
+FORMULATIONS = ("reference", "fused", "native")
+BUILD_COMMAND = "python -m qtl.kernels.native.build"
 _ACTIVE = ["reference"]
 
 
 def use_formulation(name: str) -> str:
-    """Make ``name`` (``reference`` | ``fused``) the formulation in effect; returns it."""
+    """Make ``name`` (``reference`` | ``fused`` | ``native``) the formulation in effect; returns it.
+
+    ``native`` needs the compiled library: a UserError saying how to build it when it cannot load.
+    """
     if name not in FORMULATIONS:
         raise UserError(f"kernels.moments must be one of {', '.join(FORMULATIONS)}, got {name!r}")
+    if name == "native":
+        from qtl.kernels import native  # the compiled kernels sit below this switch
+
+        try:
+            native.load_exp_sum()
+        except ImportError as err:
+            raise UserError(
+                f"kernels.moments=native, but the native kernels cannot load ({err}): "
+                f"build them with `{BUILD_COMMAND}`, or choose kernels.moments=fused"
+            ) from err
     _ACTIVE[0] = name
     return name
 
 
 def active_formulation() -> str:
-    """``reference`` or ``fused``: the formulation moment matching uses now."""
+    """``reference``, ``fused`` or ``native``: the formulation moment matching uses now."""
     return _ACTIVE[0]
 
 
 def fused() -> bool:
-    """Whether the fused formulation is in effect."""
-    return _ACTIVE[0] == "fused"
+    """Whether the fused formulation is in effect (``native`` is the fused formulation, compiled)."""
+    return _ACTIVE[0] != "reference"
+
+
+def native() -> bool:
+    """Whether the native twins of the fused formulation's pieces run (float64 CPU operands)."""
+    return _ACTIVE[0] == "native"
 
 
 @contextlib.contextmanager

@@ -23,7 +23,7 @@ def test_the_cache_key_follows_source_flags_and_cpu(monkeypatch, tmp_path):
     key, original = artefact.cache_key(), artefact.SOURCE
     source = tmp_path / "exp_sum.c"
     shutil.copy(original, source)
-    monkeypatch.setattr(artefact, "SOURCE", source)
+    monkeypatch.setattr(artefact, "SOURCES", tuple(source if s == original else s for s in artefact.SOURCES))
     assert artefact.cache_key() == key
     source.write_text(source.read_text() + "\n/* changed */\n")
     assert artefact.cache_key() != key

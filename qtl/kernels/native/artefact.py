@@ -1,4 +1,4 @@
-"""Where the compiled exp-sum kernel lives: its source, compiler flags and cache key."""
+"""Where qtl's compiled kernels live: their sources (every `*.c` here, one shared library), flags and cache key."""
 
 from __future__ import annotations
 
@@ -7,6 +7,8 @@ import platform
 from pathlib import Path
 
 SOURCE = Path(__file__).with_name("exp_sum.c")
+# All C sources of this directory, compiled together into one shared library (exp sums, moments, ...).
+SOURCES = tuple(sorted(Path(__file__).parent.glob("*.c")))
 COMPILER = "gcc"
 # -O3 and -march=native let gcc vectorise the exp loops through libmvec (AVX-512 or AVX2 variants);
 # -fno-math-errno lets it call them; -fopenmp for the threads and the `omp simd` reductions.
@@ -29,13 +31,15 @@ def cpu_tag() -> str:
 
 
 def cache_key() -> str:
-    """A hash of the source, the compiler and its flags, and the CPU: a new key means a rebuild."""
-    digest = hashlib.sha256(SOURCE.read_bytes())
+    """A hash of the sources, the compiler and its flags, and the CPU: a new key means a rebuild."""
+    digest = hashlib.sha256()
+    for source in SOURCES:
+        digest.update(source.name.encode() + b"\0" + source.read_bytes())
     for part in (COMPILER, *FLAGS, *LIBS, cpu_tag()):
         digest.update(b"\0" + part.encode())
     return digest.hexdigest()[:16]
 
 
 def artefact_path() -> Path:
-    """The shared library built from this source with these flags on this CPU (it may not exist)."""
+    """The shared library built from these sources with these flags on this CPU (it may not exist)."""
     return SOURCE.with_name(f"{ARTEFACT_PREFIX}{cache_key()}.so")

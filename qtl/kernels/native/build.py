@@ -2,7 +2,8 @@
 
     python -m qtl.kernels.native.build [--force] [--optional]
 
-Compiles `exp_sum.c` with `artefact.COMPILER` and `artefact.FLAGS` into `_exp_sum-<key>.so`, the key
+Compiles every `*.c` of this directory (`exp_sum.c`, ...) with `artefact.COMPILER` and `artefact.FLAGS`
+into `_exp_sum-<key>.so`, the key
 a hash of the source, the flags and the CPU (so a changed source or another machine rebuilds), then
 checks the result against the torch twin on a small problem before keeping it. ``--optional`` (used
 by `scripts/setup.sh`) turns a failed build into one line saying that qtl will use the torch path.
@@ -20,7 +21,7 @@ from pathlib import Path
 
 import torch
 
-from qtl.kernels.native.artefact import ARTEFACT_PREFIX, COMPILER, FLAGS, LIBS, SOURCE, artefact_path
+from qtl.kernels.native.artefact import ARTEFACT_PREFIX, COMPILER, FLAGS, LIBS, SOURCES, artefact_path
 from qtl.kernels.native.exp_sum import NativeWeightedExpSum
 from qtl.kernels.native.library import ExpSumLibrary, load_exp_sum
 
@@ -35,9 +36,9 @@ class BuildError(RuntimeError):
 
 
 def compile_kernel(target: Path) -> None:
-    """Compile the source into ``target`` (atomically: a temporary file, then a rename)."""
+    """Compile the sources into ``target`` (atomically: a temporary file, then a rename)."""
     tmp = target.with_name(f"{target.stem}.{os.getpid()}.tmp")
-    cmd = [COMPILER, *FLAGS, "-o", str(tmp), str(SOURCE), *LIBS]
+    cmd = [COMPILER, *FLAGS, "-o", str(tmp), *map(str, SOURCES), *LIBS]
     try:
         done = subprocess.run(cmd, capture_output=True, text=True, check=False)
     except OSError as err:
