@@ -17,13 +17,14 @@ policy and propagation on the GPU (the targets are judged on the CPU only). Writ
 In the same run (issue 18), the moment-matching search at each ``--compare-sizes`` n (default 250, float64)
 under the ``COMPARE_VARIANTS`` of ``kernels.backend`` {torch, native}, ``optimizer.batched`` {false, true}
 (restarts one after the other, or in lockstep in one batched rollout) and ``kernels.moments`` {reference,
-fused}: the same data, model and ψ_0, each in its own subprocess; absolute times, ratios against
+fused, native}: the same data, model and ψ_0, each in its own subprocess; absolute times, ratios against
 torch + sequential + reference (today's defaults), and the predicted returns found.
 ``--no-compare`` skips it.
 
     .venv/bin/python scripts/bench_policy_search.py [--sizes 250 500 1000] [--dtypes float64 float32]
         [--propagators moment_matching particles] [--threads 2] [--device cpu] [--repeats 3]
         [--skip-search | --search-at-targets] [--compare-sizes 250 | --no-compare | --compare-only]
+        [--variants native/batched/native ...]
         [--overrides OVERRIDE ...] [--mm-overrides OVERRIDE ...] [--particles-overrides OVERRIDE ...]
         [--output PATH] [--no-docs] [--cache-dir DIR]
 """
@@ -74,10 +75,18 @@ COMPARE_VARIANTS = [
     ("native", True, "reference"),
     ("torch", False, "fused"),
     ("native", False, "fused"),
-    ("native", True, "fused"),  # every speed switch on
+    ("native", True, "fused"),
+    ("native", False, "native"),
+    ("native", True, "native"),  # every speed switch on
 ]
 RESTART_MODES = {False: "sequential", True: "batched"}
 BASELINE_VARIANT = COMPARE_VARIANTS[0]
+
+
+def variant_name(variant: tuple[str, bool, str]) -> str:
+    """'backend/restarts/moments' of a comparison variant, e.g. 'native/batched/fused'."""
+    backend, batched, moments = variant
+    return f"{backend}/{RESTART_MODES[batched]}/{moments}"
 # The loop's settings per propagator: Hydra overrides of the default `train` config.
 PROPAGATORS: dict[str, list[str]] = {
     "moment_matching": ["propagation=moment_matching", "optimizer=lbfgs"],
@@ -132,7 +141,9 @@ COMPARE_DESCRIPTION = (
     "in every row, each row in its own subprocess: the exp sums on the torch path or the native kernel "
     "(`kernels.backend`), the restarts one after the other or all at once (`optimizer.batched=true`: each restart "
     "runs its own L-BFGS, one batched rollout per round answers all that still run), and the per-step moment maths "
-    "as written first or in the fused formulation with fewer dispatched operations (`kernels.moments`). Rollouts: "
+    "as written first, in the fused formulation with fewer dispatched operations, or in that formulation with its "
+    "hot pieces (SE-kernel moments, angle features, squashing) one compiled call forward and one backward "
+    "each (`kernels.moments=reference|fused|native`). Rollouts: "
     "calls of the objective (one per batched round); evaluations: per restart. 'rollout + gradient': one restart; "
     "'batched, R restarts': one rollout + gradient of the R starting points of the search at once. Ratios are times "
     "over torch + sequential + reference (below 1: faster). Predicted return: the best V found; per restart in "
@@ -538,6 +549,9 @@ def main() -> None:
     parser.add_argument("--compare-sizes", type=int, nargs="+", default=COMPARE_SIZES,
                         help="n of the backend x restarts comparison (moment matching, float64)")
     parser.add_argument("--no-compare", action="store_true", help="skip the backend x restarts comparison")
+    parser.add_argument("--variants", nargs="+", metavar="BACKEND/RESTARTS/MOMENTS",
+                        help="compare only these (e.g. native/batched/native; the baseline "
+                             f"{variant_name(BASELINE_VARIANT)} always runs too); default: all")
     parser.add_argument("--compare-only", action="store_true",
                         help="only the backend x restarts comparison (its own JSON and docs section: *_compare)")
     parser.add_argument("--overrides", nargs="*", default=[], help="Hydra overrides for every configuration")
@@ -563,11 +577,17 @@ def main() -> None:
     compare_sizes = [] if args.no_compare else args.compare_sizes
     if args.compare_only and args.no_compare:
         parser.error("--compare-only and --no-compare leave nothing to measure")
+    names = {variant_name(v): v for v in COMPARE_VARIANTS}
+    unknown = sorted(set(args.variants or ()) - set(names))
+    if unknown:
+        parser.error(f"unknown --variants {', '.join(unknown)}: choose from {', '.join(names)}")
+    chosen = set(args.variants or names)
+    variants = [v for v in COMPARE_VARIANTS if v == BASELINE_VARIANT or variant_name(v) in chosen]
     for n in dict.fromkeys([*([] if args.compare_only else args.sizes), *compare_sizes]):
         path, models[n] = ensure_model(data_cfg, n, args.seed, args.cache_dir)
         how = "cached" if models[n]["cached"] else f"fitted in {models[n]['fit_s']:.1f} s"
         print(f"n={n}: model {how} ({path.name})", file=sys.stderr, flush=True)
-        for backend, batched, moments in COMPARE_VARIANTS if n in compare_sizes else ():
+        for backend, batched, moments in variants if n in compare_sizes else ():
             job = {"propagator": "moment_matching", "n": n, "dtype": "float64", "model": str(path),
                    "overrides": [*args.overrides, *args.mm_overrides], "threads": args.threads,
                    "device": args.device, "repeats": args.repeats, "skip_search": False,
