@@ -363,9 +363,10 @@ class KernelsConfig:
     )
     moments: str = field(
         default="reference",
-        metadata=doc("reference | fused | native: the moment-matching maths (fused: ~45% fewer torch ops per step, "
-                     "the same moments to ~1e-13; native: fused with its hot pieces compiled, needs the native "
-                     "build; round-off differs, so metrics.csv is per formulation)"),
+        metadata=doc("reference | fused | native | auto: the moment-matching maths (fused: ~45% fewer torch "
+                     "ops per step, the same moments to ~1e-13; native: fused with its hot pieces compiled, "
+                     "needs the native build; auto: native when built, else fused; round-off differs, so "
+                     "metrics.csv is per formulation)"),
     )
 
 

@@ -2,13 +2,18 @@
 
 from __future__ import annotations
 
+import logging
+
 import pytest
 import torch
 
 from qtl.build import build
 from qtl.errors import UserError
 from qtl.gaussian import Gaussian
+from qtl.kernels import formulation as formulation_module
 from qtl.kernels.formulation import active_formulation, formulation, use_formulation
+from qtl.kernels.native import build as native_build
+from qtl.kernels.native import library as native_library
 from qtl.policies import LinearPolicy, Policy, RBFPolicy, SquashedPolicy
 from qtl.propagation import MomentMatching
 from tests.helpers import gradcheck_value_wrt_policy_and_start, quadratic_reward, tiny_config
@@ -90,5 +95,23 @@ def test_kernels_moments_is_chosen_in_build_and_a_bad_one_is_refused():
         assert active_formulation() == "reference"  # the default
         with pytest.raises(UserError, match=r"kernels\.moments must be one of"):
             build(tiny_config("kernels.moments=fast"))
+    finally:
+        use_formulation("reference")
+
+
+def test_native_and_auto_need_the_build_and_auto_falls_back_to_fused(monkeypatch, caplog, tmp_path):
+    """moments=native refuses a missing build in one line; auto takes native when built, else fused (logged once)."""
+    try:
+        native_build.build()
+        assert use_formulation("auto") == "native" and active_formulation() == "native"
+        monkeypatch.setattr(native_library, "artefact_path", lambda: tmp_path / "missing.so")
+        with pytest.raises(UserError, match=r"kernels\.moments=native, but .* build them with"):
+            use_formulation("native")
+        monkeypatch.setattr(formulation_module, "_FALLBACK_LOGGED", [False])
+        with caplog.at_level(logging.INFO, logger="qtl.kernels.formulation"):
+            assert use_formulation("auto") == "fused"
+            assert use_formulation("auto") == "fused"
+        assert active_formulation() == "fused"
+        assert sum("using kernels.moments=fused" in r.getMessage() for r in caplog.records) == 1
     finally:
         use_formulation("reference")
