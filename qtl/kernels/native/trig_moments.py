@@ -68,6 +68,12 @@ def load_trig() -> TrigLibrary:
         raise ImportError(f"{path.name} does not load its trig kernels: {err}") from err
 
 
+@functools.cache
+def _library() -> TrigLibrary:
+    """:func:`load_trig`, once per process (the hot path does not hash the sources again on each call)."""
+    return load_trig()
+
+
 def applicable(*tensors: Tensor) -> bool:
     """Whether the compiled path takes these operands: all float64 on the CPU."""
     return all(t.dtype == torch.float64 and t.device.type == "cpu" for t in tensors)
@@ -185,6 +191,8 @@ class NativeSinSquash(torch.autograd.Function):
 
 def _common_batch(mean: Tensor, cov: Tensor) -> tuple[Tensor, Tensor]:
     """``mean`` `... x D` and ``cov`` `... x D x D` expanded (views) to their common batch shape."""
+    if mean.shape[:-1] == cov.shape[:-2]:
+        return mean, cov
     batch = torch.broadcast_shapes(mean.shape[:-1], cov.shape[:-2])
     if mean.shape[:-1] != batch:
         mean = mean.expand(*batch, mean.shape[-1])
@@ -203,7 +211,7 @@ def angle_feature_moments(
     """
     mean, cov = _common_batch(mean, cov)
     mean = mean if mean.stride(-1) == 1 or mean.shape[-1] == 1 else mean.contiguous()
-    return NativeAngleFeatures.apply(mean, _rows(cov), tuple(angle_dims), load_trig())
+    return NativeAngleFeatures.apply(mean, _rows(cov), tuple(angle_dims), _library())
 
 
 def sin_squash_terms(mean: Tensor, cov: Tensor, bound: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -214,7 +222,7 @@ def sin_squash_terms(mean: Tensor, cov: Tensor, bound: Tensor) -> tuple[Tensor, 
     """
     mean, cov = _common_batch(mean, cov)
     mean = mean if mean.stride(-1) == 1 or mean.shape[-1] == 1 else mean.contiguous()
-    return NativeSinSquash.apply(mean, _rows(cov), bound.contiguous(), load_trig())
+    return NativeSinSquash.apply(mean, _rows(cov), bound.contiguous(), _library())
 
 
 def check_against_torch(library: TrigLibrary | None = None) -> None:
