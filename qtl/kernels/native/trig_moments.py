@@ -229,13 +229,15 @@ def check_against_torch(library: TrigLibrary | None = None) -> None:
     """Both kernels' values and gradients equal the fused torch code on small odd-shaped problems (to 1e-12).
 
     Angle features: D = 5 with angles (3, 0), mean `2 x 3 x 5` against cov `3 x 5 x 5` broadcast;
-    squashing: F = 3, mean `3 x 3` against cov `2 x 3 x 3 x 3`. Raises RuntimeError on disagreement.
+    squashing: F = 3, mean `3 x 3` against cov `2 x 3 x 3 x 3`. Raises :class:`qtl.kernels.native.build.BuildError`
+    (a RuntimeError) on disagreement.
     ``library``: the library to check (default: the one built for these sources and CPU).
     """
     # The twins live above this layer; imported here only, for the check.
     from qtl.features import AngleFeatures
     from qtl.gaussian import Gaussian, symmetrize
     from qtl.kernels.formulation import formulation
+    from qtl.kernels.native.build import BuildError
     from qtl.policies.squash import _squash_terms, _SquashWeights
 
     library = library or load_trig()
@@ -255,7 +257,7 @@ def check_against_torch(library: TrigLibrary | None = None) -> None:
         for got, want in zip((*native, *grads[0]), (*fused, *grads[1]), strict=True):
             err, scale = (got - want).abs().max().item(), want.abs().max().item()
             if got.shape != want.shape or not err <= CHECK_RTOL * scale:
-                raise RuntimeError(f"the compiled {what} disagrees with torch (max error {err:.3g} of {scale:.3g})")
+                raise BuildError(f"the compiled {what} disagrees with torch (max error {err:.3g} of {scale:.3g})")
 
     mean, cov = problem((2, 3), (3,), 5)
     features = AngleFeatures(5, (3, 0))
