@@ -15,7 +15,8 @@ import torch
 from torch import Tensor
 
 from qtl.gaussian import Gaussian, MomentMatch, batch_matmul, full_batch, identity, symmetrize
-from qtl.kernels.formulation import fused
+from qtl.kernels.formulation import fused, native
+from qtl.kernels.native import trig_moments as native_trig
 
 
 @dataclass(frozen=True)
@@ -264,6 +265,9 @@ class AngleFeatures:
             gain = identity(self.state_dim, mean.dtype, mean.device).expand(*cov.shape)
             return MomentMatch(mean=mean, cov=cov, cross_cov=cov, gain=gain)
 
+        if native() and native_trig.applicable(mean, cov):  # the same maths, one compiled call each way
+            out_mean, out_cov, cross_cov, gain = native_trig.angle_feature_moments(mean, cov, self.angle_dims)
+            return MomentMatch(mean=out_mean, cov=out_cov, cross_cov=cross_cov, gain=gain)
         layout = _layout(self.state_dim, self.angle_dims, mean.dtype, mean.device)
         num_other = len(self.other_dims)
         stats = trig_stats(mean, cov, layout.stats_map)

@@ -11,7 +11,8 @@ from torch import Tensor
 
 from qtl.features import reference_trig_moments, trig_map, trig_stats, trig_terms
 from qtl.gaussian import Gaussian, GaussianMap, MomentMatch, compose, full_batch, symmetrize
-from qtl.kernels.formulation import fused
+from qtl.kernels.formulation import fused, native
+from qtl.kernels.native import trig_moments as native_trig
 from qtl.policies.base import Policy
 
 # u = u_max (SIN_WEIGHT sin z + SIN3_WEIGHT sin(SIN3_FREQ z)): the third-order Fourier
@@ -85,6 +86,12 @@ def _squash_terms(mean: Tensor, cov: Tensor, weights: _SquashWeights) -> tuple[T
     return out_mean, out_cov, slope
 
 
+def _native_bound(bound: Tensor, mean: Tensor, *others: Tensor) -> bool:
+    """Whether the compiled squashing takes these operands: float64 CPU, ``bound`` `F` without gradient."""
+    fits = bound.shape == mean.shape[-1:] and not bound.requires_grad
+    return fits and native_trig.applicable(bound, mean, *others)
+
+
 def _reference_sin_squash_moments(state: Gaussian, bound: Tensor) -> MomentMatch:
     """:func:`sin_squash_moments`, reference formulation: the lift φ = [z, 3z] and the full (sin, cos) moments of φ."""
     state = state.expand()
@@ -109,6 +116,9 @@ def sin_squash_moments(state: Gaussian, bound: Tensor) -> MomentMatch:
     if not fused():
         return _reference_sin_squash_moments(state, bound)
     state = full_batch(state)
+    if native() and _native_bound(bound, state.mean, state.cov):  # one compiled call each way
+        mean, cov, slope = native_trig.sin_squash_terms(state.mean, state.cov, bound)
+        return MomentMatch(mean=mean, cov=cov, cross_cov=state.cov * slope, gain=torch.diag_embed(slope[..., 0, :]))
     mean, cov, slope = _squash_terms(state.mean, state.cov, _SquashWeights.of(bound.to(state.mean)))
     gain = torch.diag_embed(slope)  # sin_squash acts elementwise: E[∂u/∂z]ᵀ is diagonal
     return MomentMatch(mean=mean, cov=symmetrize(cov), cross_cov=state.cov * slope[..., None, :], gain=gain)
@@ -141,6 +151,9 @@ class SquashedPolicy(Policy):
             pre = inner(state)
             if not fused():
                 return compose(pre, _reference_sin_squash_moments(pre.output, self.action_bound.to(pre.mean)))
+            if native() and _native_bound(self.action_bound, pre.mean, pre.cov):  # one compiled call each way
+                mean, cov, slope = native_trig.sin_squash_terms(pre.mean, pre.cov, self.action_bound)
+                return MomentMatch(mean=mean, cov=cov, cross_cov=pre.cross_cov * slope, gain=pre.gain * slope)
             dtype = pre.mean.dtype
             if dtype not in weights:
                 weights[dtype] = _SquashWeights.of(self.action_bound.to(pre.mean))
