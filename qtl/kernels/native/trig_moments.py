@@ -22,8 +22,6 @@ from qtl.kernels.native.artefact import artefact_path
 from qtl.kernels.native.exp_sum import item_offsets
 
 _PTR, _INT64 = ctypes.c_void_p, ctypes.c_int64
-# The smoke check's tolerance (relative to each tensor's largest entry, float64).
-CHECK_RTOL = 1e-12
 
 
 def _ptr(t: Tensor | None) -> int | None:
@@ -224,51 +222,3 @@ def sin_squash_terms(mean: Tensor, cov: Tensor, bound: Tensor) -> tuple[Tensor, 
     mean = mean if mean.stride(-1) == 1 or mean.shape[-1] == 1 else mean.contiguous()
     return NativeSinSquash.apply(mean, _rows(cov), bound.contiguous(), _library())
 
-
-def check_against_torch(library: TrigLibrary | None = None) -> None:
-    """Both kernels' values and gradients equal the fused torch code on small odd-shaped problems (to 1e-12).
-
-    Angle features: D = 5 with angles (3, 0), mean `2 x 3 x 5` against cov `3 x 5 x 5` broadcast;
-    squashing: F = 3, mean `3 x 3` against cov `2 x 3 x 3 x 3`. Raises :class:`qtl.kernels.native.build.BuildError`
-    (a RuntimeError) on disagreement.
-    ``library``: the library to check (default: the one built for these sources and CPU).
-    """
-    # The twins live above this layer; imported here only, for the check.
-    from qtl.features import AngleFeatures
-    from qtl.gaussian import Gaussian, symmetrize
-    from qtl.kernels.formulation import formulation
-    from qtl.kernels.native.build import BuildError
-    from qtl.policies.squash import _squash_terms, _SquashWeights
-
-    library = library or load_trig()
-    gen = torch.Generator().manual_seed(0)
-
-    def problem(batch_mean: tuple[int, ...], batch_cov: tuple[int, ...], dim: int) -> tuple[Tensor, Tensor]:
-        mean = torch.randn(*batch_mean, dim, generator=gen, dtype=torch.float64)
-        root = 0.5 * torch.randn(*batch_cov, dim, dim, generator=gen, dtype=torch.float64)
-        return mean.requires_grad_(), (root @ root.mT).requires_grad_()
-
-    def compare(what: str, native: tuple[Tensor, ...], fused: tuple[Tensor, ...], inputs: tuple[Tensor, ...]) -> None:
-        weights = [torch.randn(t.shape, generator=gen, dtype=torch.float64) for t in fused]
-        grads = [
-            torch.autograd.grad(sum((w * t).sum() for w, t in zip(weights, outs, strict=True)), inputs)
-            for outs in (native, fused)
-        ]
-        for got, want in zip((*native, *grads[0]), (*fused, *grads[1]), strict=True):
-            err, scale = (got - want).abs().max().item(), want.abs().max().item()
-            if got.shape != want.shape or not err <= CHECK_RTOL * scale:
-                raise BuildError(f"the compiled {what} disagrees with torch (max error {err:.3g} of {scale:.3g})")
-
-    mean, cov = problem((2, 3), (3,), 5)
-    features = AngleFeatures(5, (3, 0))
-    with formulation("fused"):
-        fused = features.moments(Gaussian(mean, cov))
-    native = NativeAngleFeatures.apply(*_common_batch(mean, cov), (3, 0), library)
-    compare("angle features", native, (fused.mean, fused.cov, fused.cross_cov, fused.gain), (mean, cov))
-
-    mean, cov = problem((3,), (2, 3), 3)
-    bound = torch.tensor([1.5, 0.5, 2.0], dtype=torch.float64)
-    with formulation("fused"):
-        out_mean, out_cov, slope = _squash_terms(mean, cov, _SquashWeights.of(bound))
-    native = NativeSinSquash.apply(*_common_batch(mean, cov), bound, library)
-    compare("sine squashing", native, (out_mean, symmetrize(out_cov), slope[..., None, :]), (mean, cov))
