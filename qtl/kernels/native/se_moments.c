@@ -362,7 +362,9 @@ static int64_t *sum_offsets(const struct sizes *sz, const int64_t *w_offsets)
     return out;
 }
 
-/* sums `items x p`, then (with_grads) G_A and G_B `items x p x n x k` each: the layout of `work`. */
+/* work: the sums `items x p`, the means `items x e` (for the backward pass), then (with_grads) G_A
+ * and G_B `items x p x n x k` each. Returns 0, 1 when memory is short, 2 when a B_a or R_p is not
+ * positive definite. */
 int qtl_se_moments_forward(const double *const *operand, int64_t ndim, const int64_t *batch, const int64_t *strides,
                            int64_t n, int64_t d, int64_t e, double *out_mean, double *out_cov, double *gain,
                            double *work, int with_grads, int threads)
@@ -390,7 +392,8 @@ int qtl_se_moments_forward(const double *const *operand, int64_t ndim, const int
         memcpy(hr + b * sz.p, g.hr, (size_t)sz.p * sizeof(double));
     }
     if (status == STATUS_OK) {
-        double *sums = work, *g_a = with_grads ? work + count : NULL, *g_b = with_grads ? work + count * (1 + block) : NULL;
+        double *sums = work, *ops = work + count + items * e;
+        double *g_a = with_grads ? ops : NULL, *g_b = with_grads ? ops + count * block : NULL;
         if (qtl_exp_sum_forward(lhs, rhs, operand[WEIGHTS], sum_off, sum_off, sum_off + count, sum_off + 2 * count,
                                 count, n, n, sz.k, sums, g_a, g_b, threads))
             status = STATUS_NO_MEMORY;
@@ -398,6 +401,7 @@ int qtl_se_moments_forward(const double *const *operand, int64_t ndim, const int
             for (int64_t b = 0; b < items; ++b) {
                 const double *m = out_mean + b * e;
                 double *cov = out_cov + b * e * e;
+                memcpy(work + count + b * e, m, (size_t)e * sizeof(double));
                 for (int64_t p = 0; p < sz.p; ++p) {
                     const int64_t a = g.pair_a[p], c = g.pair_b[p];
                     const double second = exp(-hr[b * sz.p + p]) * sums[b * sz.p + p];
@@ -637,11 +641,11 @@ static void sum_grads(const struct sizes *sz, const struct geometry *g, const do
 
 /* grad_out: the gradients of mean, cov, gain (NULL: none), with strides as read_output_grads reads
  * them; grad: the 7 operands' gradient buffers (NULL: not wanted; zeroed by the caller, contiguous
- * in their trailing dimensions) with batch strides `7 x ndim`; out_mean: the forward's mean; work:
- * the forward's, fused: whether it holds G_A and G_B (else they, and W̄, are recomputed). Returns 0,
+ * in their trailing dimensions) with batch strides `7 x ndim`; work: the forward's (sums, means),
+ * fused: whether it holds G_A and G_B (else they, and W̄, are recomputed). Returns 0,
  * 1 when memory is short, 2 when a B_a or R_p is not positive definite. */
 int qtl_se_moments_backward(const double *const *operand, int64_t ndim, const int64_t *batch, const int64_t *strides,
-                            int64_t n, int64_t d, int64_t e, const double *out_mean, const double *work, int fused,
+                            int64_t n, int64_t d, int64_t e, const double *work, int fused,
                             const double *const *grad_out, const int64_t *grad_out_strides, double *const *grad,
                             const int64_t *grad_strides, int threads)
 {
@@ -651,6 +655,7 @@ int qtl_se_moments_backward(const double *const *operand, int64_t ndim, const in
     const struct sizes sz = {.items = items, .n = n, .d = d, .e = e, .p = e * (e + 1) / 2, .k = d + 2};
     const int64_t count = items * sz.p, block = n * sz.k, nn = n * n;
     const int need_ops = grad[MEAN] || grad[COV] || grad[INPUTS] || grad[INV_LS] || grad[LOG_SF2];
+    const double *out_mean = work + count, *ops = out_mean + items * e;
     /* the pairs matter only with a gradient of cov; without G_A, G_B from the forward, recompute */
     const int pairs = grad_out[GRAD_COV] && (need_ops || grad[WEIGHTS]);
     const int recompute = pairs && !fused;
@@ -747,8 +752,8 @@ int qtl_se_moments_backward(const double *const *operand, int64_t ndim, const in
         if (pairs && need_ops) {
             const double *sums = work + b * sz.p, *bars = sum_bar + b * sz.p;
             if (fused) /* G_A, G_B from the forward, times S̄ */
-                pairs_adjoint(&sz, &it, &g, sums, bars, work + count + b * sz.p * block,
-                              work + count * (1 + block) + b * sz.p * block, bars, &gr, &adj);
+                pairs_adjoint(&sz, &it, &g, sums, bars, ops + b * sz.p * block, ops + (count + b * sz.p) * block,
+                              bars, &gr, &adj);
             else /* the recomputed adjoints, S̄ included */
                 pairs_adjoint(&sz, &it, &g, sums, bars, ga + b * sz.p * block, gb + b * sz.p * block, ones, &gr,
                               &adj);

@@ -38,7 +38,7 @@ class SEMomentsLibrary:
         common = [_PTRS, _INT64, _INTS, _INTS, _INT64, _INT64, _INT64]
         lib.qtl_se_moments_forward.argtypes = [*common, _PTR, _PTR, _PTR, _PTR, _INT, _INT]
         lib.qtl_se_moments_forward.restype = _INT
-        lib.qtl_se_moments_backward.argtypes = [*common, _PTR, _PTR, _INT, _PTRS, _INTS, _PTRS, _INTS, _INT]
+        lib.qtl_se_moments_backward.argtypes = [*common, _PTR, _INT, _PTRS, _INTS, _PTRS, _INTS, _INT]
         lib.qtl_se_moments_backward.restype = _INT
         self._lib = lib
         self.path = path
@@ -59,7 +59,8 @@ class SEMomentsLibrary:
         out_mean = mean.new_empty(*batch, e)
         out_cov = mean.new_empty(*batch, e, e)
         gain = mean.new_empty(*batch, d, e)
-        work = mean.new_empty(items * pairs * (1 + (2 * n * (d + 2) if with_grads else 0)))
+        # the sums `items x P`, the means `items x E`, and with_grads G_A, G_B `items x P x n x (D + 2)` each
+        work = mean.new_empty(items * (pairs + e + (2 * pairs * n * (d + 2) if with_grads else 0)))
         status = self._lib.qtl_se_moments_forward(
             _pointers(operands), *_batch_args(operands, batch), n, d, e,
             out_mean.data_ptr(), out_cov.data_ptr(), gain.data_ptr(), work.data_ptr(),
@@ -72,7 +73,6 @@ class SEMomentsLibrary:
         self,
         operands: tuple[Tensor, ...],
         batch: torch.Size,
-        out_mean: Tensor,
         work: Tensor,
         fused: bool,
         grad_outputs: tuple[Tensor | None, Tensor | None, Tensor | None],
@@ -92,7 +92,7 @@ class SEMomentsLibrary:
         ]
         status = self._lib.qtl_se_moments_backward(
             _pointers(operands), *_batch_args(operands, batch), *_sizes(operands),
-            out_mean.data_ptr(), work.data_ptr(), int(fused),
+            work.data_ptr(), int(fused),
             _pointers(grad_outputs), _int64s(out_strides), _pointers(grads), _int64s(grad_strides),
             torch.get_num_threads(),
         )  # fmt: skip
@@ -208,7 +208,7 @@ class NativeSEKernelMoments(torch.autograd.Function):
         out_mean, out_cov, gain, work = library.forward(operands, batch, ctx.fused)
         if any(needs):
             ctx.save_for_backward(*operands)
-            ctx.out_mean, ctx.work, ctx.batch, ctx.library = out_mean.detach(), work, batch, library
+            ctx.work, ctx.batch, ctx.library = work, batch, library
         ctx.set_materialize_grads(False)
         return out_mean, out_cov, gain
 
@@ -219,9 +219,7 @@ class NativeSEKernelMoments(torch.autograd.Function):
     ) -> tuple[Tensor | None, ...]:
         operands = ctx.saved_tensors
         needs = tuple(ctx.needs_input_grad[:_NUM_OPERANDS])
-        grads = ctx.library.backward(
-            operands, ctx.batch, ctx.out_mean, ctx.work, ctx.fused, (grad_mean, grad_cov, grad_gain), needs
-        )
+        grads = ctx.library.backward(operands, ctx.batch, ctx.work, ctx.fused, (grad_mean, grad_cov, grad_gain), needs)
         return *grads, None, None
 
 
