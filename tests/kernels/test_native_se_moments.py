@@ -9,8 +9,10 @@ from torch.utils._python_dispatch import TorchDispatchMode
 from qtl.gaussian import Gaussian
 from qtl.kernels import SEKernelMoments
 from qtl.kernels.formulation import formulation
-from qtl.kernels.native import se_moments
-from qtl.kernels.native.se_moments import NativeSEKernelMoments, check_against_torch, load_se_moments
+from qtl.kernels.native import build as native_build
+from qtl.kernels.native import se_moments, se_moments_check
+from qtl.kernels.native.se_moments import NativeSEKernelMoments, load_se_moments
+from qtl.kernels.native.se_moments_check import check_against_torch
 from qtl.propagation import MomentMatching
 from tests.helpers import quadratic_reward
 from tests.propagation.restarts import spread_restarts
@@ -261,9 +263,11 @@ def test_one_call_dispatches_a_handful_of_ops(library, with_k_inv):
 
 def test_check_against_torch_passes_and_can_fail(library, monkeypatch):
     check_against_torch(library)
-    monkeypatch.setattr(se_moments, "CHECK_RTOL", -1.0)
+    monkeypatch.setattr(se_moments_check, "CHECK_RTOL", -1.0)
     with pytest.raises(RuntimeError, match="disagree with torch"):
         check_against_torch(library)
+    with pytest.raises(native_build.BuildError, match="disagree with torch"):
+        check_against_torch(library, error=native_build.BuildError)
 
 
 @pytest.mark.parametrize(("restarts", "models"), [(1, 1), (3, 1), (1, 2)])
