@@ -16,7 +16,8 @@ from torch.autograd.function import once_differentiable
 
 from qtl.gaussian import Gaussian, MomentMatch, batch_matmul, full_batch, identity, symmetrize
 from qtl.kernels.exp_sum import weighted_exp_sum
-from qtl.kernels.formulation import fused
+from qtl.kernels.formulation import fused, native
+from qtl.kernels.native.se_moments import native_fits, se_kernel_moments
 
 
 class _InverseHalfLogdet(torch.autograd.Function):
@@ -152,7 +153,16 @@ class SEKernelMoments:
         return self._fused_call(state.mean, state.cov)
 
     def _fused_call(self, mean: Tensor, cov: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """Mean, covariance and gain, fused formulation (one factorisation of all B_a and R̃_ab, constant maps)."""
+        """Mean, covariance and gain, fused formulation (one factorisation of all B_a and R̃_ab, constant maps).
+
+        Under ``native`` (float64 CPU operands) one compiled call forward and one backward compute the same.
+        """
+        constants = (self.inputs, self.beta, self.inv_ls, self.log_sf2, self.weights)
+        if native() and self.inputs.shape[-2] > 0 and native_fits(mean, cov, *constants):
+            out_mean, out_cov, gain = se_kernel_moments(mean, cov, *constants)
+            if self._model_variance is not None:
+                out_cov = out_cov + self._model_variance
+            return out_mean, out_cov, gain
         eye = identity(mean.shape[-1], mean.dtype, mean.device)
         nu = self._inputs - mean[..., None, None, :]  # ... x 1 x n x D, x_i − μ
 

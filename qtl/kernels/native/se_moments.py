@@ -1,0 +1,243 @@
+"""The native SE-kernel moments (`se_moments.c`): one compiled call forward, one backward, as an autograd op.
+
+The twin of ``SEKernelMoments._fused_call`` (:mod:`qtl.kernels.moments`) for float64 CPU operands:
+mean, covariance (without the model variance diag(α²), which the caller adds) and gain of
+f_a(x) = Σ_i β_ai k_a(x_i, x) at x ~ N(μ, Σ), with the hand-derived adjoint of the whole formula.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import functools
+import math
+from pathlib import Path
+
+import torch  # first: the library then shares the libgomp torch has loaded
+from torch import Tensor
+from torch.autograd.function import FunctionCtx, once_differentiable
+
+from qtl.kernels.native.artefact import artefact_path
+
+_PTR, _INT64, _INT = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int
+_PTRS = ctypes.POINTER(ctypes.c_void_p)
+_INTS = ctypes.POINTER(ctypes.c_int64)
+# Trailing (per-item) dimensions of mean, cov, inputs, beta, inv_ls, log_sf2, weights.
+_INNER = (1, 2, 2, 2, 2, 1, 3)
+_NUM_OPERANDS = len(_INNER)
+_STATUS_NOT_PD = 2
+
+
+class SEMomentsLibrary:
+    """``qtl_se_moments_forward`` and ``qtl_se_moments_backward`` of the compiled library, through ctypes."""
+
+    def __init__(self, path: Path) -> None:
+        lib = ctypes.CDLL(str(path))
+        # operand, ndim, batch, strides, n, d, e
+        common = [_PTRS, _INT64, _INTS, _INTS, _INT64, _INT64, _INT64]
+        lib.qtl_se_moments_forward.argtypes = [*common, _PTR, _PTR, _PTR, _PTR, _INT, _INT]
+        lib.qtl_se_moments_forward.restype = _INT
+        lib.qtl_se_moments_backward.argtypes = [*common, _PTR, _INT, _PTRS, _INTS, _PTRS, _INTS, _INT]
+        lib.qtl_se_moments_backward.restype = _INT
+        self._lib = lib
+        self.path = path
+
+    def forward(
+        self, operands: tuple[Tensor, ...], batch: torch.Size, with_grads: bool
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """Mean `*batch x E`, cov `*batch x E x E` (no model variance), gain `*batch x D x E` and the work buffer.
+
+        ``operands`` (mean, cov, inputs, beta, inv_ls, log_sf2, weights) are contiguous in their trailing
+        dimensions and broadcast to ``batch``; ``with_grads``: the work buffer also keeps the exp sums'
+        operand gradients G_A, G_B for the backward pass.
+        """
+        inputs, beta = operands[2], operands[3]
+        n, d, e = inputs.shape[-2], inputs.shape[-1], beta.shape[-2]
+        items, pairs = math.prod(batch), e * (e + 1) // 2
+        mean = operands[0]
+        out_mean = mean.new_empty(*batch, e)
+        out_cov = mean.new_empty(*batch, e, e)
+        gain = mean.new_empty(*batch, d, e)
+        # the sums `items x P`, the means `items x E`, and with_grads G_A, G_B `items x P x n x (D + 2)` each
+        work = mean.new_empty(items * (pairs + e + (2 * pairs * n * (d + 2) if with_grads else 0)))
+        status = self._lib.qtl_se_moments_forward(
+            _pointers(operands), *_batch_args(operands, batch), n, d, e,
+            out_mean.data_ptr(), out_cov.data_ptr(), gain.data_ptr(), work.data_ptr(),
+            int(with_grads), torch.get_num_threads(),
+        )  # fmt: skip
+        _raise_for(status)
+        return out_mean, out_cov, gain, work
+
+    def backward(
+        self,
+        operands: tuple[Tensor, ...],
+        batch: torch.Size,
+        work: Tensor,
+        fused: bool,
+        grad_outputs: tuple[Tensor | None, Tensor | None, Tensor | None],
+        needs: tuple[bool, ...],
+    ) -> list[Tensor | None]:
+        """Gradients of the 7 operands (their own shapes; None where ``needs`` says not), given those of the outputs."""
+        grads = [torch.zeros(t.shape, dtype=t.dtype) if need else None for t, need in zip(operands, needs, strict=True)]
+        ndim = len(batch)
+        out_strides: list[int] = []
+        for g, inner in zip(grad_outputs, (1, 2, 2), strict=True):  # shapes `*batch x ...`: strides as they are
+            strides = (0,) * (ndim + inner) if g is None else g.stride()
+            out_strides += [*strides, *(0,) * (2 - inner)]
+        grad_strides = [
+            s
+            for g, t, inner in zip(grads, operands, _INNER, strict=True)
+            for s in (_aligned_strides(g if g is not None else t, inner, ndim))
+        ]
+        status = self._lib.qtl_se_moments_backward(
+            _pointers(operands), *_batch_args(operands, batch), *_sizes(operands),
+            work.data_ptr(), int(fused),
+            _pointers(grad_outputs), _int64s(out_strides), _pointers(grads), _int64s(grad_strides),
+            torch.get_num_threads(),
+        )  # fmt: skip
+        _raise_for(status)
+        return grads
+
+
+def _sizes(operands: tuple[Tensor, ...]) -> tuple[int, int, int]:
+    """n, D, E of the operands."""
+    inputs, beta = operands[2], operands[3]
+    return inputs.shape[-2], inputs.shape[-1], beta.shape[-2]
+
+
+def _raise_for(status: int) -> None:
+    """The error a non-zero status of the library stands for."""
+    if status == _STATUS_NOT_PD:
+        raise torch.linalg.LinAlgError("the native SE-kernel moments: a B_a or R_ab is not positive-definite")
+    if status:
+        raise MemoryError("the native SE-kernel moments could not allocate their scratch memory")
+
+
+def _pointers(tensors: tuple[Tensor | None, ...] | list[Tensor | None]) -> ctypes.Array:
+    """The tensors' data pointers (NULL for None), as a C array."""
+    return (ctypes.c_void_p * len(tensors))(*(None if t is None else t.data_ptr() for t in tensors))
+
+
+def _int64s(values: list[int]) -> ctypes.Array:
+    """``values`` as a C int64 array."""
+    return (ctypes.c_int64 * max(1, len(values)))(*values)
+
+
+def _aligned_strides(t: Tensor, inner: int, ndim: int) -> tuple[int, ...]:
+    """The strides of ``t``'s leading dimensions (all but ``inner`` trailing ones) aligned right to ``ndim`` batch
+    dimensions: 0 where ``t`` lacks the dimension or has size 1 (broadcast); then nothing of the inner ones."""
+    lead = t.dim() - inner
+    strides = [0] * (ndim - lead) + [
+        0 if size == 1 else stride for size, stride in zip(t.shape[:lead], t.stride(), strict=False)
+    ]
+    return tuple(strides)
+
+
+def _batch_args(operands: tuple[Tensor, ...], batch: torch.Size) -> tuple[int, ctypes.Array, ctypes.Array]:
+    """ndim, the batch sizes and every operand's batch strides (`7 x ndim`), as the library takes them."""
+    ndim = len(batch)
+    strides = [s for t, inner in zip(operands, _INNER, strict=True) for s in _aligned_strides(t, inner, ndim)]
+    return ndim, _int64s(list(batch)), _int64s(strides)
+
+
+def _trailing_contiguous(t: Tensor, inner: int) -> Tensor:
+    """``t``, or a contiguous copy when its ``inner`` trailing dimensions are not laid out row-major."""
+    expected = 1
+    for size, stride in zip(reversed(t.shape[t.dim() - inner :]), reversed(t.stride()[t.dim() - inner :]), strict=True):
+        if size != 1 and stride != expected:
+            return t.contiguous()
+        expected *= size
+    return t
+
+
+@functools.cache
+def _open(path: Path) -> SEMomentsLibrary:
+    return SEMomentsLibrary(path)
+
+
+def load_se_moments() -> SEMomentsLibrary:
+    """The library built for these sources, flags and CPU; ImportError (saying why) when it cannot load."""
+    path = artefact_path()
+    if not path.is_file():
+        raise ImportError(f"{path.name} is not built for this source and CPU")
+    try:
+        return _open(path)
+    except (OSError, AttributeError) as err:
+        raise ImportError(f"{path.name} does not load: {err}") from err
+
+
+@functools.cache
+def cached_library() -> SEMomentsLibrary:
+    """:func:`load_se_moments`, once per process (finding the artefact hashes the sources: not per call)."""
+    return load_se_moments()
+
+
+class NativeSEKernelMoments(torch.autograd.Function):
+    """Mean `... x E`, covariance `... x E x E` (without diag(α²)) and gain `... x D x E` by `se_moments.c`.
+
+    Operands: mean `... x D`, cov `... x D x D`, inputs `... x n x D`, beta `... x E x n`, inv_ls
+    `... x E x D` (1/ℓ), log_sf2 `... x E` (log α²), weights `... x P x n x n` (P = E(E+1)/2, triu
+    order); leading dimensions broadcast, and the gradients of broadcast operands are summed in C.
+    ``grad_enabled`` is ``torch.is_grad_enabled()`` at the call. When an operand other than the
+    weights needs a gradient and the weights do not (the GP dynamics), the forward pass keeps the
+    exp sums' operand gradients, so backward has no n x n pass; otherwise backward recomputes.
+    """
+
+    @staticmethod
+    def forward(  # type: ignore[override]
+        ctx: FunctionCtx,
+        mean: Tensor,
+        cov: Tensor,
+        inputs: Tensor,
+        beta: Tensor,
+        inv_ls: Tensor,
+        log_sf2: Tensor,
+        weights: Tensor,
+        library: SEMomentsLibrary,
+        grad_enabled: bool,
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        operands = tuple(
+            _trailing_contiguous(t, inner)
+            for t, inner in zip((mean, cov, inputs, beta, inv_ls, log_sf2, weights), _INNER, strict=True)
+        )
+        batch = torch.broadcast_shapes(*(t.shape[: t.dim() - inner] for t, inner in zip(operands, _INNER, strict=True)))
+        needs = tuple(ctx.needs_input_grad[:_NUM_OPERANDS]) if grad_enabled else (False,) * _NUM_OPERANDS
+        need_ops = any(needs[i] for i in (0, 1, 2, 4, 5))  # all but beta enter the exp sums' operands
+        ctx.fused = need_ops and not needs[6]
+        out_mean, out_cov, gain, work = library.forward(operands, batch, ctx.fused)
+        if any(needs):
+            ctx.save_for_backward(*operands)
+            ctx.work, ctx.batch, ctx.library = work, batch, library
+        ctx.set_materialize_grads(False)
+        return out_mean, out_cov, gain
+
+    @staticmethod
+    @once_differentiable
+    def backward(  # type: ignore[override]
+        ctx: FunctionCtx, grad_mean: Tensor | None, grad_cov: Tensor | None, grad_gain: Tensor | None
+    ) -> tuple[Tensor | None, ...]:
+        operands = ctx.saved_tensors
+        needs = tuple(ctx.needs_input_grad[:_NUM_OPERANDS])
+        grads = ctx.library.backward(operands, ctx.batch, ctx.work, ctx.fused, (grad_mean, grad_cov, grad_gain), needs)
+        return *grads, None, None
+
+
+def native_fits(*tensors: Tensor) -> bool:
+    """Whether the native moments take these operands: all float64 on the CPU."""
+    return all(t.device.type == "cpu" and t.dtype == torch.float64 for t in tensors)
+
+
+def se_kernel_moments(
+    mean: Tensor,
+    cov: Tensor,
+    inputs: Tensor,
+    beta: Tensor,
+    inv_ls: Tensor,
+    log_sf2: Tensor,
+    weights: Tensor,
+    library: SEMomentsLibrary | None = None,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Mean `... x E`, cov `... x E x E` (no model variance) and gain `... x D x E` by the compiled kernel."""
+    library = library or cached_library()
+    return NativeSEKernelMoments.apply(
+        mean, cov, inputs, beta, inv_ls, log_sf2, weights, library, torch.is_grad_enabled()
+    )
