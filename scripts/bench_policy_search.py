@@ -395,7 +395,7 @@ def add_ratios(rows: list[dict[str, Any]]) -> None:
 def comparison_markdown(rows: list[dict[str, Any]]) -> list[str]:
     """The backend x restarts x formulation table."""
     lines = [
-        "### Exp sums torch vs native, restarts sequential vs batched, moments reference vs fused (moment matching)",
+        "### Exp sums torch vs native, restarts sequential vs batched, moments reference, fused or native",
         "",
         COMPARE_DESCRIPTION,
         "",
