@@ -179,7 +179,7 @@ class LBFGSConfig(OptimizerConfig):
     max_iter: int = field(default=100, metadata=doc("function evaluations per run"))
     restarts: int = field(default=2, metadata=doc("runs in all, the first from the current ψ"))
     perturbation: float = field(default=0.1, metadata=doc(PERTURBATION_HELP))
-    batched: bool = field(default=False, metadata=doc(BATCHED_HELP))
+    batched: bool = field(default=True, metadata=doc(BATCHED_HELP))
 
 
 @dataclass
@@ -191,7 +191,7 @@ class AdamConfig(OptimizerConfig):
     lr: float = field(default=0.01, metadata=doc("learning rate"))
     restarts: int = field(default=1, metadata=doc("runs in all, the first from the current ψ"))
     perturbation: float = field(default=0.1, metadata=doc(PERTURBATION_HELP))
-    batched: bool = field(default=False, metadata=doc(BATCHED_HELP))
+    batched: bool = field(default=True, metadata=doc(BATCHED_HELP))
 
 
 @dataclass
@@ -246,7 +246,7 @@ class ModelConfig:
     )
     max_iter: int = field(default=DEFAULT_MAX_ITER, metadata=doc("L-BFGS iterations per run"))
     warm_start: bool = field(
-        default=False,
+        default=True,
         metadata=doc("start each fit from the previous episode's θ_p (and Z), the cold restarts only for outputs "
                      "whose evidence per point falls short of the previous fit's (the first fit: θ_s or heuristic)"),
     )
@@ -289,6 +289,13 @@ GROUP_SCHEMAS: dict[str, dict[str, type]] = {
 # A group node stored before its group existed (no `_target_`) is read as this option: `model` (restarts,
 # max_iter, sparse_above, inducing) was today's `model=auto`.
 LEGACY_TARGETS = {"model": AutoModelConfig._target_}
+# Keys whose default changed when the fast paths became the defaults (issue 18): a stored config made
+# before the key existed ran with the old value, and reads so (a fresh config always holds the key).
+LEGACY_DEFAULTS = {
+    "model": {"warm_start": False},
+    "optimizer": {"batched": False},
+    "kernels": {"backend": "torch", "moments": "reference"},
+}
 
 
 SCHEMA_BY_TARGET: dict[str, type] = {
@@ -303,6 +310,15 @@ def typed_groups(cfg: DictConfig) -> DictConfig:
     """
     if cfg.get("rule") is None:  # runs made before transfer existed are PILCO runs
         cfg.rule = OmegaConf.structured(NoTransferConfig)
+    for group, old in LEGACY_DEFAULTS.items():
+        node = cfg.get(group)
+        if node is None and group == "kernels":
+            cfg.kernels = {}
+            node = cfg.kernels
+        if node is not None:
+            for key, value in old.items():
+                if key not in node:
+                    node[key] = value
     for group in GROUP_SCHEMAS:
         node = cfg.get(group)
         schema = None if node is None else SCHEMA_BY_TARGET.get(node.get("_target_", LEGACY_TARGETS.get(group)))
@@ -357,12 +373,12 @@ class KernelsConfig:
     """How the shared kernel maths runs (``qtl.kernels``)."""
 
     backend: str = field(
-        default="torch",
+        default="auto",
         metadata=doc("torch | auto | native: the fused exp sums of moment matching (native: C, CPU float64; "
                      "auto: native when built, else torch)"),
     )
     moments: str = field(
-        default="reference",
+        default="auto",
         metadata=doc("reference | fused | native | auto: the moment-matching maths (fused: ~45% fewer torch "
                      "ops per step, the same moments to ~1e-13; native: fused with its hot pieces compiled, "
                      "needs the native build; auto: native when built, else fused; round-off differs, so "

@@ -69,7 +69,7 @@ SIZES = [250, 500, 1000]
 COMPARE_SIZES = [250]
 # The comparison of issue 18, moment matching, float64: (exp-sum backend, restarts batched, moment formulation).
 COMPARE_VARIANTS = [
-    ("torch", False, "reference"),  # the defaults: what the ratios are taken against
+    ("torch", False, "reference"),  # the reference path (the defaults before issue 18): the ratios' baseline
     ("torch", True, "reference"),
     ("native", False, "reference"),
     ("native", True, "reference"),

@@ -25,7 +25,8 @@ def test_parts_of_the_default_config():
     assert parts.task.state_dim == 4 and parts.task.horizon == 8
     assert parts.features.output_dim == parts.task.feature_dim
     assert parts.start.mean.dtype == torch.float64 and parts.start.mean.shape == (4,)
-    assert parts.model == AutoFit(restarts=1, max_iter=5)  # the TINY budget; sparse_above, inducing: defaults
+    # The TINY budget; sparse_above, inducing: the fitter's defaults; warm starts: the config's default.
+    assert parts.model == AutoFit(restarts=1, max_iter=5, warm_start=True)
     assert isinstance(parts.search, LBFGSSearch) and parts.search.restarts == 2
     policy = parts.initial_policy()
     assert isinstance(policy, SquashedPolicy)
@@ -33,8 +34,8 @@ def test_parts_of_the_default_config():
                                             angle_dims=parts.task.angle_dims), MomentMatching)
 
 
-def test_the_model_group_defaults_to_auto_with_the_fitters_own_defaults():
-    assert instantiate(tiny_config("model.restarts=3", "model.max_iter=100").model) == AutoFit()
+def test_the_model_group_defaults_to_auto_with_the_fitters_own_defaults_and_warm_starts():
+    assert instantiate(tiny_config("model.restarts=3", "model.max_iter=100").model) == AutoFit(warm_start=True)
 
 
 @pytest.mark.parametrize(("option", "kind"), [("auto", AutoFit), ("exact", ExactFit), ("sparse", SparseFit)])
@@ -92,7 +93,19 @@ def test_a_config_stored_before_the_model_group_reads_as_model_auto():
     legacy["model"] = {"restarts": 1, "max_iter": 5, "sparse_above": 10, "inducing": 6}  # no `_target_`
     cfg = typed_groups(OmegaConf.create(legacy))
     assert cfg.model._target_ == "qtl.models.AutoFit"
-    assert build(cfg).model == AutoFit(restarts=1, max_iter=5, sparse_above=10, inducing=6)
+    assert build(cfg).model == AutoFit(restarts=1, max_iter=5, sparse_above=10, inducing=6)  # warm_start: false
+
+
+def test_a_config_stored_before_the_fast_defaults_reads_with_the_old_values():
+    """Keys added before issue 18 flipped their defaults read as their old defaults where a stored config lacks them."""
+    legacy = OmegaConf.to_container(tiny_config(), resolve=True)
+    del legacy["model"]["warm_start"], legacy["optimizer"]["batched"], legacy["kernels"]
+    cfg = typed_groups(OmegaConf.create(legacy))
+    assert cfg.model.warm_start is False and cfg.optimizer.batched is False
+    assert (cfg.kernels.backend, cfg.kernels.moments) == ("torch", "reference")
+    fresh = typed_groups(tiny_config())
+    assert fresh.model.warm_start is True and fresh.optimizer.batched is True
+    assert (fresh.kernels.backend, fresh.kernels.moments) == ("auto", "auto")
 
 
 def test_resolve_device_accepts_cpu_and_present_gpus(monkeypatch):
@@ -126,8 +139,8 @@ def test_kernels_backend_is_chosen_in_build_and_a_bad_one_is_refused():
     except ImportError:
         expected = "torch"
     try:
-        assert build(tiny_config("kernels.backend=auto")).kernel_backend == expected == active_backend()
-        assert build(tiny_config()).kernel_backend == "torch" == active_backend()  # the default
+        assert build(tiny_config("kernels.backend=torch")).kernel_backend == "torch" == active_backend()
+        assert build(tiny_config()).kernel_backend == expected == active_backend()  # the default: auto
         with pytest.raises(UserError, match=r"kernels\.backend must be one of"):
             build(tiny_config("kernels.backend=cuda"))
     finally:

@@ -323,7 +323,7 @@ def test_batched_search_needs_a_policy_and_one_value_per_restart():
 
 @pytest.mark.parametrize(("option", "target"), [("lbfgs", LBFGSSearch), ("adam", AdamSearch)])
 def test_config_chooses_batched_restarts(option, target):
-    """``optimizer.batched`` is a typed key of both options, false unless set."""
-    assert instantiate(train_config(f"optimizer={option}").optimizer).batched is False
-    search = instantiate(train_config(f"optimizer={option}", "optimizer.batched=true").optimizer)
-    assert isinstance(search, target) and search.batched is True
+    """``optimizer.batched`` is a typed key of both options, true unless set false."""
+    assert instantiate(train_config(f"optimizer={option}").optimizer).batched is True
+    search = instantiate(train_config(f"optimizer={option}", "optimizer.batched=false").optimizer)
+    assert isinstance(search, target) and search.batched is False

@@ -91,8 +91,11 @@ def test_kernels_moments_is_chosen_in_build_and_a_bad_one_is_refused():
     try:
         build(tiny_config("kernels.moments=fused"))
         assert active_formulation() == "fused"
+        native_build.build()
         build(tiny_config())
-        assert active_formulation() == "reference"  # the default
+        assert active_formulation() == "native"  # the default, auto: native where the build loads
+        build(tiny_config("kernels.moments=reference"))
+        assert active_formulation() == "reference"
         with pytest.raises(UserError, match=r"kernels\.moments must be one of"):
             build(tiny_config("kernels.moments=fast"))
     finally:

@@ -54,12 +54,12 @@ def test_smallest_configuration_measures_both_propagators_without_touching_docs(
     assert report["models"]["60"]["n"] == 60 and list((tmp_path / "cache").glob("*.pt"))
     assert "## Policy search" in done.stdout and "not measured here" in done.stdout
 
-    # The comparison: the COMPARE_VARIANTS of backend x restarts x formulation, ratios against the defaults.
+    # The comparison: the COMPARE_VARIANTS of backend x restarts x formulation, ratios against the reference path.
     rows = {(r["backend"], r["batched"], r["moments"]): r for r in report["comparison"]}
     assert sorted(rows) == sorted([
         ("torch", False, "reference"), ("torch", True, "reference"), ("native", False, "reference"),
         ("native", True, "reference"), ("torch", False, "fused"), ("native", False, "fused"),
-        ("native", True, "fused")])
+        ("native", True, "fused"), ("native", False, "native"), ("native", True, "native")])
     for (backend, batched, moments), row in rows.items():
         if backend == "native" and "error" in row:  # the native kernel is optional: not built here
             assert "native" in row["error"]
