@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import ctypes
 import functools
+from collections.abc import Callable
 from pathlib import Path
+from typing import TypeVar
 
 import torch  # first: the kernel then shares the libgomp torch has loaded
 from torch import Tensor
@@ -96,17 +98,28 @@ class ExpSumLibrary:
         return grad_a, grad_b, grad_w
 
 
+Binding = TypeVar("Binding")
+
+
 @functools.cache
-def _open(path: Path) -> ExpSumLibrary:
-    return ExpSumLibrary(path)
+def _open(binding: Callable[[Path], Binding], path: Path) -> Binding:
+    return binding(path)
+
+
+def load_binding(binding: Callable[[Path], Binding]) -> Binding:
+    """``binding`` (a ctypes wrapper of some of its symbols) over the library built for these sources, flags and CPU.
+
+    Opened once per (binding, path); an ImportError saying why when the library is missing or lacks the symbols.
+    """
+    path = artefact_path()
+    if not path.is_file():
+        raise ImportError(f"{path.name} is not built for these sources and CPU")
+    try:
+        return _open(binding, path)
+    except (OSError, AttributeError) as err:
+        raise ImportError(f"{path.name} does not load: {err}") from err
 
 
 def load_exp_sum() -> ExpSumLibrary:
-    """The kernel built for this source, flags and CPU; ImportError (saying why) when it cannot load."""
-    path = artefact_path()
-    if not path.is_file():
-        raise ImportError(f"{path.name} is not built for this source and CPU")
-    try:
-        return _open(path)
-    except (OSError, AttributeError) as err:
-        raise ImportError(f"{path.name} does not load: {err}") from err
+    """The exp-sum kernel built for these sources, flags and CPU; ImportError (saying why) when it cannot load."""
+    return load_binding(ExpSumLibrary)

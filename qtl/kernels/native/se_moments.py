@@ -16,7 +16,7 @@ import torch  # first: the library then shares the libgomp torch has loaded
 from torch import Tensor
 from torch.autograd.function import FunctionCtx, once_differentiable
 
-from qtl.kernels.native.artefact import artefact_path
+from qtl.kernels.native.library import load_binding
 
 _PTR, _INT64, _INT = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int
 _PTRS = ctypes.POINTER(ctypes.c_void_p)
@@ -149,20 +149,9 @@ def _trailing_contiguous(t: Tensor, inner: int) -> Tensor:
     return t
 
 
-@functools.cache
-def _open(path: Path) -> SEMomentsLibrary:
-    return SEMomentsLibrary(path)
-
-
 def load_se_moments() -> SEMomentsLibrary:
-    """The library built for these sources, flags and CPU; ImportError (saying why) when it cannot load."""
-    path = artefact_path()
-    if not path.is_file():
-        raise ImportError(f"{path.name} is not built for this source and CPU")
-    try:
-        return _open(path)
-    except (OSError, AttributeError) as err:
-        raise ImportError(f"{path.name} does not load: {err}") from err
+    """The SE-moment kernels built for these sources, flags and CPU; ImportError (saying why) when they cannot load."""
+    return load_binding(SEMomentsLibrary)
 
 
 @functools.cache

@@ -18,8 +18,8 @@ import torch  # first: the library then shares the libgomp torch has loaded
 from torch import Tensor
 from torch.autograd.function import FunctionCtx, once_differentiable
 
-from qtl.kernels.native.artefact import artefact_path
 from qtl.kernels.native.exp_sum import item_offsets
+from qtl.kernels.native.library import load_binding
 
 _PTR, _INT64 = ctypes.c_void_p, ctypes.c_int64
 
@@ -50,20 +50,9 @@ class TrigLibrary:
         self.path = path
 
 
-@functools.cache
-def _open(path: Path) -> TrigLibrary:
-    return TrigLibrary(path)
-
-
 def load_trig() -> TrigLibrary:
-    """The library built for these sources, flags and CPU; ImportError (saying why) when it cannot load."""
-    path = artefact_path()
-    if not path.is_file():
-        raise ImportError(f"{path.name} is not built for this source and CPU")
-    try:
-        return _open(path)
-    except (OSError, AttributeError) as err:
-        raise ImportError(f"{path.name} does not load its trig kernels: {err}") from err
+    """The trig kernels built for these sources, flags and CPU; ImportError (saying why) when they cannot load."""
+    return load_binding(TrigLibrary)
 
 
 @functools.cache
