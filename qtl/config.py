@@ -20,6 +20,7 @@ from omegaconf import II, MISSING, DictConfig, OmegaConf
 
 from qtl.errors import UserError
 from qtl.models.fitting import DEFAULT_INDUCING, DEFAULT_MAX_ITER, DEFAULT_RESTARTS, DEFAULT_SPARSE_ABOVE
+from qtl.propagation.particles import DEFAULT_NUM_FEATURES
 
 # OmegaConf reads these annotations at run time: keep `Optional[...]` and `List`-style types
 # that it understands (PEP 604 unions are not supported by OmegaConf's structured configs).
@@ -137,6 +138,14 @@ class ParticlesConfig(PropagationConfig):
     )
     gaussian_resampling: bool = field(
         default=False, metadata=doc("redraw the particles from their fitted Gaussian every step (PIPPS)"),
+    )
+    sampling: str = field(
+        default="marginal",
+        metadata=doc("marginal | pathwise: a fresh GP draw every step, or one GP function per particle for the "
+                     "rollout (Matheron's rule, random Fourier features; O(n + L) per step instead of O(n²))"),
+    )
+    num_features: int = field(
+        default=DEFAULT_NUM_FEATURES, metadata=doc("random Fourier features L per output of a pathwise function"),
     )
     seed: int = field(default=II("seed"), metadata=doc("seed of the base noise"))
 

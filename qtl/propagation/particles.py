@@ -7,17 +7,29 @@ x_{t+1} = x_t + m(x_t) + √v(x_t) ∘ ε_{t+1}, with per output a the mean m_a 
 variance v_a = α_a² − k_a (K_a + σ_ε²I)⁻¹ k_aᵀ (+ σ_ε² with ``include_noise``) (Eq. 1-2). The
 expected return (Eq. 4) is the mean over particles of Σ_{t=1..H} r(x_t), differentiable in ψ.
 
-As in moment matching, the E outputs are independent and the GP function is drawn afresh at
-every step: there is no correlation of f across steps or particles.
+Two ways to sample the GP (``sampling``):
+
+- ``marginal`` (default): as in moment matching, the E outputs are independent and the GP function
+  is drawn afresh at every step: there is no correlation of f across steps or particles. A step
+  costs O(n²) per particle and output (the variance).
+- ``pathwise``: each particle draws one function f_p per output for the whole rollout by
+  Matheron's rule (:mod:`qtl.propagation.pathwise`; Wilson et al. 2020), a prior sample from L
+  random Fourier features plus a data-fitted update, and steps x_{t+1} = x_t + f_p(x_t) (+ σ_ε ε_{t+1}
+  with ``include_noise``: the observation noise, independent per step). The particle's function
+  is the same along its path, the GP's own belief; a step costs O(n + L) per particle and output.
+  With ``expected_reward`` the per-step predictive is N(x_{t−1} + f_p, diag σ_ε²) (or a point
+  without noise): given the function, the noise is the step's only randomness.
 
 Variance control by common random numbers: the base noise, ε_0 `P x D` and ε_1..ε_H
 `H x P x E`, is a deterministic function of (``seed``, draw index). With ``resample_every = 0``
 the draw index never changes, so every evaluation in a policy search sees the same noise and
 the objective is a deterministic function of ψ (what L-BFGS needs). With ``resample_every = k``
 it advances every k calls of :meth:`Particles.expected_return`: fresh noise every k evaluations,
-for stochastic optimisers (Adam). The noise is shared across the batch dimensions of the start
-distribution, of stacked models and of a batched policy's restarts (ψ `R x ...`, whose ``forward``
-takes `R x P x D`), so a batched rollout equals the per-item rollouts.
+for stochastic optimisers (Adam). With pathwise sampling the draw also holds the functions' random
+numbers (frequencies ω̃, phases b, weights w, update noise ε: a stream of their own), so a draw is
+one set of P functions, used by every evaluation of that draw. The noise is shared across the
+batch dimensions of the start distribution, of stacked models and of a batched policy's restarts
+(ψ `R x ...`, whose ``forward`` takes `R x P x D`), so a batched rollout equals the per-item rollouts.
 
 Gaussian resampling (PIPPS's "GR", Parmas et al. 2018): with ``gaussian_resampling`` the particles
 are replaced after every step by P fresh draws x = m̂ + L̂ ε' from the Gaussian of their sample mean
@@ -36,12 +48,13 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from qtl.errors import NonFiniteObjective
+from qtl.errors import NonFiniteObjective, UserError
 from qtl.gaussian import Gaussian, matrix_root, sample_moments
 from qtl.kernels import gp_predictive
 from qtl.policies.base import Policy
 from qtl.propagation.base import DynamicsSource, Rollout
 from qtl.propagation.gp_cache import propagation_inputs
+from qtl.propagation.pathwise import MatheronPaths, draw_features, matheron_paths, path_values
 from qtl.rewards import ExpectedSaturatingReward
 
 # Fewest particles: the per-step covariance needs two.
@@ -53,6 +66,12 @@ SQRT_VARIANCE_FLOOR = 1e-30
 NOISE_DTYPE = torch.float64
 # The stream of the Gaussian-resampling noise within a draw (the start and step noise use stream 0).
 RESAMPLING_STREAM = 1
+# The stream of the pathwise functions' random numbers within a draw.
+PATHWISE_STREAM = 2
+# How the GP is sampled: afresh at every step, or one function per particle for the whole rollout.
+SAMPLING = ("marginal", "pathwise")
+# Random Fourier features L per output of a pathwise function (Monte Carlo error of its kernel ~ 1/√L).
+DEFAULT_NUM_FEATURES = 1024
 
 
 class BaseNoise(NamedTuple):
@@ -103,8 +122,10 @@ class Particles:
     expectation (Rao-Blackwellised; exact without angle dimensions, PILCO's moment-matched augmented
     state with them), smooth in ψ where the drawn particles all score ~0. ``gaussian_resampling``:
     after every step, replace the particles by draws from their fitted Gaussian (PIPPS's GR; see
-    the module docstring). ``seed``: of the base noise. ``dtype``: of the propagation (default:
-    the cache's); the policy must share it.
+    the module docstring). ``sampling``: ``marginal`` (a fresh GP draw every step) or ``pathwise``
+    (one function per particle for the rollout; see the module docstring), with ``num_features``
+    random Fourier features L per output. ``seed``: of the base noise. ``dtype``: of the propagation
+    (default: the cache's); the policy must share it.
     """
 
     def __init__(
@@ -119,6 +140,8 @@ class Particles:
         include_noise: bool = True,
         expected_reward: bool = False,
         gaussian_resampling: bool = False,
+        sampling: str = "marginal",
+        num_features: int = DEFAULT_NUM_FEATURES,
         seed: int = 0,
         dtype: torch.dtype | None = None,
     ) -> None:
@@ -128,6 +151,10 @@ class Particles:
             raise ValueError(f"resample_every must be >= 0 (0: never resample), got {resample_every}")
         if seed < 0:
             raise ValueError(f"seed must be >= 0, got {seed}")
+        if sampling not in SAMPLING:
+            raise UserError(f"propagation.sampling must be one of {', '.join(SAMPLING)}, got {sampling!r}")
+        if num_features < 1:
+            raise UserError(f"propagation.num_features must be >= 1 (random Fourier features), got {num_features}")
         data, self.features, self.dtype = propagation_inputs(model, policy, reward, angle_dims, dtype)
         self.state_dim = self.features.state_dim
         self.policy = policy
@@ -137,9 +164,12 @@ class Particles:
         self.include_noise = include_noise
         self.expected_reward = bool(expected_reward)
         self.gaussian_resampling = bool(gaussian_resampling)
+        self.sampling = str(sampling)
+        self.num_features = int(num_features)
         self.seed = int(seed)
         self.calls = 0  # evaluations of expected_return so far: they set the draw index
         self._noise: tuple[tuple[int, int], BaseNoise] | None = None
+        self._functions: tuple[int, MatheronPaths] | None = None
 
         # Everything that depends only on data and θ is computed here, once.
         self.model_batch_shape = data["beta"].shape[:-2]
@@ -180,6 +210,20 @@ class Particles:
                                           None if resampling is None else resampling.to(**like)))
         return self._noise[1]
 
+    def functions(self, draw: int | None = None) -> MatheronPaths:
+        """The P pathwise functions per output of one draw (default: the latest); needs ``sampling="pathwise"``."""
+        if self.sampling != "pathwise":
+            raise ValueError(f"functions() needs sampling='pathwise', this propagator samples {self.sampling!r}")
+        draw = self.draw_index() if draw is None else draw
+        if self._functions is None or self._functions[0] != draw:
+            gen = torch.Generator().manual_seed(_draw_seed(self.seed, draw, PATHWISE_STREAM))
+            num_outputs, num_points, input_dim = self._data.shape[-3:]
+            features = draw_features(gen, num_outputs, input_dim, num_points, self.num_particles, self.num_features)
+            paths = matheron_paths(features, self._data, self._beta, self._K_inv, self._signal_variance,
+                                   self._noise_variance)
+            self._functions = (draw, paths)
+        return self._functions[1]
+
     # -- propagation ----------------------------------------------------------------------------
 
     def trajectories(self, start: Gaussian, horizon: int, draw: int | None = None) -> tuple[Tensor, Tensor]:
@@ -197,7 +241,9 @@ class Particles:
         if horizon < 1:
             raise ValueError(f"horizon must be >= 1, got {horizon}")
         start = start.to(dtype=self.dtype)
+        draw = self.draw_index() if draw is None else draw
         start_noise, step_noise, resampling_noise = self.base_noise(horizon, draw)
+        functions = self.functions(draw) if self.sampling == "pathwise" else None
         batch = torch.broadcast_shapes(start.batch_shape, self.model_batch_shape, self.policy.batch_shape)
         x = start.mean[..., None, :] + start_noise @ matrix_root(start.cov).mT  # x_0 = μ_0 + L_0 ε_0
         x = x.expand(*batch, self.num_particles, self.state_dim)
@@ -206,12 +252,20 @@ class Particles:
             y = self.features(x)  # ... x P x (D + K), exact per particle
             u = self.policy(y)  # ... x P x F
             z = torch.cat([y, u], dim=-1)[..., None, :, :] * self._inv_lengthscales  # ... x E x P x D_in
-            mean, var = gp_predictive(z, self._data, self._data_sq, self._beta, self._K_inv,
-                                      self._signal_variance)  # ... x E x P (Eq. 1-2)
-            var = var.clamp_min(0.0)  # round-off can make the latent variance slightly negative
-            if self.include_noise:
-                var = var + self._noise_variance[..., None]
-            delta = mean + _safe_sqrt(var) * step_noise[t].mT  # Δ ~ N(m, v) reparameterised
+            if functions is None:
+                mean, var = gp_predictive(z, self._data, self._data_sq, self._beta, self._K_inv,
+                                          self._signal_variance)  # ... x E x P (Eq. 1-2)
+                var = var.clamp_min(0.0)  # round-off can make the latent variance slightly negative
+                if self.include_noise:
+                    var = var + self._noise_variance[..., None]
+                delta = mean + _safe_sqrt(var) * step_noise[t].mT  # Δ ~ N(m, v) reparameterised
+            else:
+                mean = path_values(z, self._data, self._data_sq, self._signal_variance, functions)  # f_p: ... x E x P
+                var = torch.zeros_like(mean)
+                delta = mean
+                if self.include_noise:  # the observation noise, independent per step, on top of f_p
+                    var = var + self._noise_variance[..., None]
+                    delta = mean + self._noise_variance.sqrt()[..., None] * step_noise[t].mT
             if self.expected_reward:
                 means.append(x + mean.mT)
                 variances.append(var.mT)

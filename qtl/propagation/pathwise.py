@@ -1,0 +1,137 @@
+"""Pathwise GP posterior samples by Matheron's rule: one drawn function per particle and output.
+
+Wilson et al. 2020, "Efficiently sampling functions from Gaussian process posteriors", Eq. 13:
+a posterior sample is a prior sample plus a data-fitted update,
+
+    f(x) = f̃(x) + k(x, X) (K + σ_ε²I)⁻¹ (y − f̃(X) − ε),    ε ~ N(0, σ_ε²I),
+
+with the prior sample f̃ from L random Fourier features of the SE kernel (Eq. 3; Rahimi & Recht
+2007): f̃(x) = Σ_l w_l φ_l(x), φ_l(x) = α √(2/L) cos(ω_lᵀ x + b_l), ω_l ~ N(0, Λ⁻¹),
+b_l ~ U(0, 2π), w_l ~ N(0, 1). Since (K + σ_ε²I)⁻¹ y = β, the update of particle p is the vector
+v_p = β − (K + σ_ε²I)⁻¹ (f̃_p(X) + ε_p) `n`, formed once per drawn function (O(n² + nL)), and then
+f_p(x) = φ(x)ᵀ w_p + k(x, X) v_p costs O(n + L) per point and output instead of the O(n²) of the
+marginal variance.
+
+The function is a deterministic map of x: evaluated twice at the same x it gives the same value.
+Its mean over draws is the posterior mean k β; its covariance is the posterior covariance of the
+GP whose kernel is the features' φ(x)ᵀφ(x') (the SE kernel up to O(α²/√L)).
+
+Everything here works on inputs already divided by the lengthscales (as
+:func:`~qtl.kernels.gp_predictive` does): with x̃ = x / ℓ, ωᵀx = ω̃ᵀx̃ with ω̃ ~ N(0, I), so the
+standard-normal frequencies are shared by every model of a stacked batch, whatever its θ.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+from torch.autograd.function import FunctionCtx, once_differentiable
+
+# The dtype the random numbers are drawn in, whatever the propagation's (as the base noise).
+DRAW_DTYPE = torch.float64
+
+
+class FeatureDraw(NamedTuple):
+    """Standard random numbers of one draw: ω̃ `E x L x D`, b `E x L`, w `E x P x L`, ε `E x n x P`."""
+
+    frequencies: Tensor
+    phases: Tensor
+    weights: Tensor
+    update_noise: Tensor
+
+
+class MatheronPaths(NamedTuple):
+    """P drawn functions per output, ready to evaluate (inputs over ℓ).
+
+    ``frequencies`` ω̃ `E x L x D`; ``phases`` b `E x L`; ``weights`` α √(2/L) w_p `... x E x P x L`
+    (the feature scale folded in); ``update`` v_p `... x E x P x n`.
+    """
+
+    frequencies: Tensor
+    phases: Tensor
+    weights: Tensor
+    update: Tensor
+
+
+def draw_features(
+    generator: torch.Generator, num_outputs: int, input_dim: int, num_points: int, num_paths: int, num_features: int
+) -> FeatureDraw:
+    """The standard random numbers of one draw, in float64 on the CPU, in a fixed order (ω̃, b, w, ε)."""
+    like = {"generator": generator, "dtype": DRAW_DTYPE}
+    frequencies = torch.randn(num_outputs, num_features, input_dim, **like)
+    phases = 2 * math.pi * torch.rand(num_outputs, num_features, **like)
+    weights = torch.randn(num_outputs, num_paths, num_features, **like)
+    update_noise = torch.randn(num_outputs, num_points, num_paths, **like)
+    return FeatureDraw(frequencies, phases, weights, update_noise)
+
+
+def matheron_paths(
+    draw: FeatureDraw, data: Tensor, beta: Tensor, K_inv: Tensor, signal_variance: Tensor, noise_variance: Tensor
+) -> MatheronPaths:
+    """P posterior functions per output by Matheron's rule (Wilson et al. 2020, Eq. 13).
+
+    ``draw``: the standard random numbers (any dtype; converted to ``data``'s); ``data`` `... x E x n x D`:
+    the training inputs over ℓ; ``beta`` `... x E x n`; ``K_inv`` `... x E x n x n` = (K + σ_ε²I)⁻¹;
+    ``signal_variance`` α² and ``noise_variance`` σ_ε² `... x E`. Not differentiable (θ and data fixed).
+    """
+    like = {"device": data.device, "dtype": data.dtype}
+    frequencies, phases, weights, update_noise = (t.to(**like) for t in draw)
+    num_features = frequencies.shape[-2]
+    scale = (2.0 * signal_variance / num_features).sqrt()[..., None, None]  # α √(2/L): `... x E x 1 x 1`
+    weights = scale * weights  # ... x E x P x L
+    prior_at_data = torch.cos(data @ frequencies.mT + phases[..., None, :]) @ weights.mT  # f̃_p(X): ... x E x n x P
+    residual = prior_at_data + noise_variance.sqrt()[..., None, None] * update_noise  # f̃_p(X) + ε_p
+    update = beta[..., :, None] - K_inv @ residual  # v_p = β − (K + σ_ε²I)⁻¹ (f̃_p(X) + ε_p): ... x E x n x P
+    return MatheronPaths(frequencies, phases, weights, update.mT.contiguous())
+
+
+class _PathValues(torch.autograd.Function):
+    """f_p(z̃_p) = φ(z̃_p)ᵀ w_p + k(z̃_p, X̃) v_p per output and particle; the gradient flows to ``z`` only.
+
+    As :func:`~qtl.kernels.gp_predictive`, the forward pass also forms ∂f/∂z̃ (`... x E x P x D`)
+    and keeps only that: no `P x n` or `P x L` tensor outlives the call.
+    """
+
+    @staticmethod
+    def forward(  # type: ignore[override]
+        ctx: FunctionCtx,
+        z: Tensor,
+        data: Tensor,
+        data_sq: Tensor,
+        signal_variance: Tensor,
+        paths: MatheronPaths,
+    ) -> Tensor:
+        frequencies, phases, weights, update = paths
+        # Data-fitted part: k(z̃, X̃) v with log k = log α² − ½‖z̃ − d̃‖² (as in gp_predictive).
+        log_kern = torch.matmul(z, data.mT)  # ... x E x P x n
+        log_kern.sub_(0.5 * z.square().sum(-1, keepdim=True)).sub_(0.5 * data_sq[..., None, :])
+        kern = log_kern.clamp_max_(0.0).add_(signal_variance.log()[..., None, None]).exp_()
+        kern_v = kern * update  # k_n v_pn (out of place: ``update`` may carry a larger batch)
+        fitted = kern_v.sum(-1)
+        # Prior part: Σ_l α √(2/L) w_pl cos(ω̃_lᵀ z̃ + b_l).
+        angle = torch.matmul(z, frequencies.mT).add_(phases[..., None, :])  # ... x E x P x L
+        prior = (torch.cos(angle) * weights).sum(-1)
+        if ctx.needs_input_grad[0]:
+            # ∂k_n/∂z̃ = k_n (d̃_n − z̃); ∂cos(ω̃ᵀz̃ + b)/∂z̃ = −sin(ω̃ᵀz̃ + b) ω̃.
+            grad = kern_v @ data - z * fitted[..., None]
+            grad = grad - (angle.sin_() * weights) @ frequencies
+            ctx.save_for_backward(grad)
+        return fitted + prior
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx: FunctionCtx, grad_out: Tensor) -> tuple[Tensor | None, ...]:  # type: ignore[override]
+        (grad,) = ctx.saved_tensors
+        return grad * grad_out[..., None], None, None, None, None
+
+
+def path_values(z: Tensor, data: Tensor, data_sq: Tensor, signal_variance: Tensor, paths: MatheronPaths) -> Tensor:
+    """The drawn functions at ``z`` `... x E x P x D` (one point per particle, over ℓ): `... x E x P`.
+
+    ``data`` `... x E x n x D` and ``data_sq`` `... x E x n` as in :func:`~qtl.kernels.gp_predictive`;
+    ``signal_variance`` α² `... x E`; ``paths`` from :func:`matheron_paths`. Differentiable in ``z``.
+    """
+    return _PathValues.apply(z, data, data_sq, signal_variance, paths)
