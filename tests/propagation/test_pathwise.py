@@ -282,6 +282,15 @@ def test_gradcheck_rollout_wrt_policy_and_start(gp_factory, include_noise, expec
     assert gradcheck_value_wrt_policy_and_start(policy, lambda s: particles.rollout(s, 3).value, start)
 
 
+def test_expected_reward_without_noise_is_the_reward_of_the_drawn_state(gp_factory):
+    # Given its function a noiseless pathwise step is deterministic: E[r(x_t) | x_{t−1}] = r(x_t).
+    gp, policy, reward = pendulum_parts(gp_factory)
+    start = Gaussian(torch.tensor([0.1, 0.2, -0.1], dtype=DTYPE), 0.05 * torch.eye(3, dtype=DTYPE))
+    values = [pathwise(gp, policy, reward, include_noise=False, expected_reward=e).rollout(start, 4).value
+              for e in (False, True)]
+    torch.testing.assert_close(values[1], values[0], rtol=1e-12, atol=1e-14)
+
+
 def test_gradcheck_path_values_wrt_points(gp_factory):
     gp = gp_factory(10, 2, 1, seed=42)
     cache = gp.posterior_cache()
