@@ -139,6 +139,10 @@ def build(cfg: DictConfig) -> Parts:
     task = Task.from_config(OmegaConf.to_container(cfg.task, resolve=True))
     kernel_backend = use_backend(cfg.kernels.backend)  # native requested but not built: a UserError here
     use_formulation(cfg.kernels.moments)  # an unknown formulation: a UserError here
+    make_propagator = instantiate(cfg.propagation)
+    check = getattr(make_propagator.func, "check_settings", None)
+    if check is not None:  # e.g. an unknown propagation.sampling: a UserError here, not at the first search
+        check(**make_propagator.keywords)
     return Parts(
         seed=int(cfg.seed),
         dtype=dtype,
@@ -148,7 +152,7 @@ def build(cfg: DictConfig) -> Parts:
         reward=ExpectedSaturatingReward.from_spec(task.reward),
         start=task.start_distribution(dtype).to(device=device),
         model=instantiate_checked(cfg.model),
-        make_propagator=instantiate(cfg.propagation),
+        make_propagator=make_propagator,
         search=instantiate_checked(cfg.optimizer),
         make_policy=instantiate(cfg.policy),
         kernel_backend=kernel_backend,

@@ -128,6 +128,27 @@ class Particles:
     (default: the cache's); the policy must share it.
     """
 
+    @staticmethod
+    def check_settings(
+        num_particles: int = MIN_PARTICLES,
+        resample_every: int = 0,
+        seed: int = 0,
+        sampling: str = "marginal",
+        num_features: int = DEFAULT_NUM_FEATURES,
+        **_: object,
+    ) -> None:
+        """The settings' ranges, checked before any work (``qtl.build`` calls it): a UserError naming what to fix."""
+        if num_particles < MIN_PARTICLES:
+            raise UserError(f"num_particles must be >= {MIN_PARTICLES}, got {num_particles}")
+        if resample_every < 0:
+            raise UserError(f"resample_every must be >= 0 (0: never resample), got {resample_every}")
+        if seed < 0:
+            raise UserError(f"seed must be >= 0, got {seed}")
+        if sampling not in SAMPLING:
+            raise UserError(f"propagation.sampling must be one of {', '.join(SAMPLING)}, got {sampling!r}")
+        if num_features < 1:
+            raise UserError(f"propagation.num_features must be >= 1 (random Fourier features), got {num_features}")
+
     def __init__(
         self,
         model: DynamicsSource,
@@ -145,16 +166,8 @@ class Particles:
         seed: int = 0,
         dtype: torch.dtype | None = None,
     ) -> None:
-        if num_particles < MIN_PARTICLES:
-            raise ValueError(f"num_particles must be >= {MIN_PARTICLES}, got {num_particles}")
-        if resample_every < 0:
-            raise ValueError(f"resample_every must be >= 0 (0: never resample), got {resample_every}")
-        if seed < 0:
-            raise ValueError(f"seed must be >= 0, got {seed}")
-        if sampling not in SAMPLING:
-            raise UserError(f"propagation.sampling must be one of {', '.join(SAMPLING)}, got {sampling!r}")
-        if num_features < 1:
-            raise UserError(f"propagation.num_features must be >= 1 (random Fourier features), got {num_features}")
+        self.check_settings(num_particles=num_particles, resample_every=resample_every, seed=seed,
+                            sampling=sampling, num_features=num_features)
         data, self.features, self.dtype = propagation_inputs(model, policy, reward, angle_dims, dtype)
         self.state_dim = self.features.state_dim
         self.policy = policy

@@ -11,6 +11,7 @@ from hydra import compose, initialize_config_module
 from hydra.utils import instantiate
 from torch import Tensor
 
+from qtl.build import build
 from qtl.config import register_configs
 from qtl.errors import UserError
 from qtl.features import AngleFeatures
@@ -19,7 +20,7 @@ from qtl.models import GPPosteriorCache
 from qtl.policies import RBFPolicy, SquashedPolicy
 from qtl.propagation import Particles
 from qtl.propagation.pathwise import FeatureDraw, MatheronPaths, draw_features, matheron_paths, path_values
-from tests.helpers import gradcheck_value_wrt_policy_and_start, quadratic_reward
+from tests.helpers import gradcheck_value_wrt_policy_and_start, quadratic_reward, tiny_config
 from tests.propagation.restarts import assert_restarts_equal_separate
 
 DTYPE = torch.float64
@@ -327,3 +328,15 @@ def test_config_selects_pathwise_and_rejects_unknown_values(gp_factory):
         instantiate(unknown.propagation)(gp, policy, reward, angle_dims=(1,))
     with pytest.raises(UserError, match="num_features"):
         Particles(gp, policy, reward, angle_dims=(1,), sampling="pathwise", num_features=0)
+
+
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [("propagation.sampling=exact", "propagation.sampling must be one of"),
+     ("propagation.num_features=0", "num_features must be >= 1"),
+     ("propagation.num_particles=1", "num_particles must be >= 2")],
+)
+def test_build_refuses_bad_particle_settings_before_any_work(override, message):
+    """A bad particle setting is a one-line UserError from build(), before any episode runs."""
+    with pytest.raises(UserError, match=message):
+        build(tiny_config("propagation=particles", override))
