@@ -13,11 +13,12 @@ from qtl.features import AngleFeatures
 from qtl.gaussian import Gaussian, MomentMatch, symmetrize
 from qtl.kernels.formulation import formulation
 from qtl.kernels.native import trig_moments as native_trig
-from qtl.policies import LinearPolicy, Policy, RBFPolicy, SquashedPolicy, sin_squash_moments
+from qtl.policies import LinearPolicy, SquashedPolicy, sin_squash_moments
 from qtl.policies.squash import _squash_terms, _SquashWeights
 from qtl.propagation import MomentMatching
 from tests.helpers import quadratic_reward
 from tests.propagation.restarts import spread_restarts
+from tests.propagation.test_moment_matching_formulations import make_policy
 from tests.test_features import assert_rel_close
 
 DTYPE = torch.float64
@@ -234,14 +235,6 @@ def test_large_variance_is_finite_and_zero_covariance_gives_zero(built):
     squash_mean, squash_cov, _ = squash_terms(mean, zero, bound, "native")
     assert torch.equal(squash_cov, torch.zeros_like(squash_cov))
     torch.testing.assert_close(squash_mean, bound * (9 * mean.sin() + (3 * mean).sin()) / 8, atol=1e-14, rtol=0)
-
-
-def make_policy(kind: str, input_dim: int) -> Policy:
-    gen = torch.Generator().manual_seed(3)
-    if kind == "linear":
-        return SquashedPolicy(LinearPolicy(input_dim, 1, generator=gen), 2.0)
-    targets = torch.randn(6, 1, generator=gen, dtype=DTYPE)
-    return SquashedPolicy(RBFPolicy(input_dim, 1, 6, targets=targets, generator=gen), 2.0)
 
 
 @pytest.mark.parametrize(
