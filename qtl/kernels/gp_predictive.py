@@ -12,6 +12,16 @@ from torch import Tensor
 from torch.autograd.function import FunctionCtx, once_differentiable
 
 
+def se_kernel_rows(z: Tensor, data: Tensor, data_sq: Tensor, signal_variance: Tensor) -> Tensor:
+    """k(z, d_n) = α² exp(−½‖z − d_n‖²) `... x E x P x n` for points and data over ℓ (Eq. 3), no autograd graph kept.
+
+    Formed in place from z dᵀ; ‖z − d‖² >= 0 up to round-off, so the exponent is clamped at 0.
+    """
+    log_kern = torch.matmul(z, data.mT)  # ... x E x P x n
+    log_kern.sub_(0.5 * z.square().sum(-1, keepdim=True)).sub_(0.5 * data_sq[..., None, :])
+    return log_kern.clamp_max_(0.0).add_(signal_variance.log()[..., None, None]).exp_()
+
+
 class _GPPredictive(torch.autograd.Function):
     """m = k β and v = α² − k K⁻¹ kᵀ per output (Eq. 1-2); the gradient flows to ``z`` only.
 
@@ -30,10 +40,7 @@ class _GPPredictive(torch.autograd.Function):
         K_inv: Tensor,
         signal_variance: Tensor,
     ) -> tuple[Tensor, Tensor]:
-        # log k = log α² − ½‖z − d‖², formed in place; ‖z − d‖² >= 0 up to round-off.
-        log_kern = torch.matmul(z, data.mT)  # ... x E x P x n
-        log_kern.sub_(0.5 * z.square().sum(-1, keepdim=True)).sub_(0.5 * data_sq[..., None, :])
-        kern = log_kern.clamp_max_(0.0).add_(signal_variance.log()[..., None, None]).exp_()
+        kern = se_kernel_rows(z, data, data_sq, signal_variance)
         mean = (kern @ beta[..., None]).squeeze(-1)  # Eq. 1
         weighted = (kern @ K_inv).mul_(kern)  # k K⁻¹ ∘ k
         quad = weighted.sum(-1)  # k K⁻¹ kᵀ

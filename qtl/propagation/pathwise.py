@@ -30,6 +30,8 @@ import torch
 from torch import Tensor
 from torch.autograd.function import FunctionCtx, once_differentiable
 
+from qtl.kernels.gp_predictive import se_kernel_rows
+
 # The dtype the random numbers are drawn in, whatever the propagation's (as the base noise).
 DRAW_DTYPE = torch.float64
 
@@ -105,10 +107,8 @@ class _PathValues(torch.autograd.Function):
         paths: MatheronPaths,
     ) -> Tensor:
         frequencies, phases, weights, update = paths
-        # Data-fitted part: k(z̃, X̃) v with log k = log α² − ½‖z̃ − d̃‖² (as in gp_predictive).
-        log_kern = torch.matmul(z, data.mT)  # ... x E x P x n
-        log_kern.sub_(0.5 * z.square().sum(-1, keepdim=True)).sub_(0.5 * data_sq[..., None, :])
-        kern = log_kern.clamp_max_(0.0).add_(signal_variance.log()[..., None, None]).exp_()
+        # Data-fitted part: k(z̃, X̃) v, the kernel rows as gp_predictive forms them.
+        kern = se_kernel_rows(z, data, data_sq, signal_variance)  # ... x E x P x n
         kern_v = kern * update  # k_n v_pn (out of place: ``update`` may carry a larger batch)
         fitted = kern_v.sum(-1)
         # Prior part: Σ_l α √(2/L) w_pl cos(ω̃_lᵀ z̃ + b_l).
