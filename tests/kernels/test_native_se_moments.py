@@ -15,7 +15,7 @@ from qtl.kernels.native.se_moments import NativeSEKernelMoments, load_se_moments
 from qtl.kernels.native.se_moments_check import check_against_torch
 from qtl.propagation import MomentMatching
 from tests.helpers import quadratic_reward
-from tests.propagation.restarts import spread_restarts
+from tests.propagation.restarts import random_start, spread_restarts
 from tests.propagation.test_moment_matching_formulations import make_policy
 from tests.test_features import assert_rel_close
 
@@ -280,11 +280,7 @@ def test_rollout_native_equals_fused(library, gp_factory, restarts, models):
         policy = spread_restarts(policy, restarts)
     propagator = MomentMatching(model, policy, quadratic_reward(3, (1,)), angle_dims=(1,), include_noise=True)
     gen = torch.Generator().manual_seed(10 * restarts + models)
-    root = 0.3 * torch.randn(3, 3, generator=gen, dtype=DTYPE)
-    mean = 0.3 * torch.randn(3, generator=gen, dtype=DTYPE)
-    if models > 1:
-        mean = mean.expand(models, 3)
-    start = Gaussian(mean, root @ root.T + 0.01 * torch.eye(3, dtype=DTYPE))
+    start = random_start(models, gen)
     psi = list(policy.parameters())
     calls = []
     original = se_moments.NativeSEKernelMoments.apply

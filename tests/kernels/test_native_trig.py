@@ -17,7 +17,7 @@ from qtl.policies import LinearPolicy, SquashedPolicy, sin_squash_moments
 from qtl.policies.squash import _squash_terms, _SquashWeights
 from qtl.propagation import MomentMatching
 from tests.helpers import quadratic_reward
-from tests.propagation.restarts import spread_restarts
+from tests.propagation.restarts import random_start, spread_restarts
 from tests.propagation.test_moment_matching_formulations import make_policy
 from tests.test_features import assert_rel_close
 
@@ -257,11 +257,7 @@ def test_native_rollout_equals_fused(built, gp_factory, monkeypatch, kind, resta
         policy = spread_restarts(policy, restarts)
     propagator = MomentMatching(model, policy, quadratic_reward(3, (1,)), angle_dims=(1,))
     gen = torch.Generator().manual_seed(restarts + models)
-    root = 0.3 * torch.randn(3, 3, generator=gen, dtype=DTYPE)
-    mean = 0.3 * torch.randn(3, generator=gen, dtype=DTYPE)
-    if models > 1:
-        mean = mean.expand(models, 3)
-    start = Gaussian(mean, root @ root.T + 0.01 * torch.eye(3, dtype=DTYPE))
+    start = random_start(models, gen)
     psi = list(policy.parameters())
     with formulation("fused"):
         fused = propagator.expected_return(start, 6)

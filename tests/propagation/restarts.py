@@ -43,3 +43,12 @@ def assert_restarts_equal_separate(make: Callable[[Policy], Propagator], policy:
             scale = float(p.grad.abs().max())
             torch.testing.assert_close(grad, p.grad, rtol=RESTART_RTOL, atol=RESTART_RTOL * scale)
     assert not torch.equal(values[0], values[1])  # the restarts really differ
+
+
+def random_start(models: int, gen: torch.Generator) -> Gaussian:
+    """A random 3-D start distribution drawn from ``gen``, its mean repeated per stacked model (`models x 3`)."""
+    root = 0.3 * torch.randn(3, 3, generator=gen, dtype=torch.float64)
+    mean = 0.3 * torch.randn(3, generator=gen, dtype=torch.float64)
+    if models > 1:  # one start per model
+        mean = mean.expand(models, 3)
+    return Gaussian(mean, root @ root.T + 0.01 * torch.eye(3, dtype=torch.float64))

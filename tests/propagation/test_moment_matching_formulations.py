@@ -17,7 +17,7 @@ from qtl.kernels.native import library as native_library
 from qtl.policies import LinearPolicy, Policy, RBFPolicy, SquashedPolicy
 from qtl.propagation import MomentMatching
 from tests.helpers import gradcheck_value_wrt_policy_and_start, quadratic_reward, tiny_config
-from tests.propagation.restarts import spread_restarts
+from tests.propagation.restarts import random_start, spread_restarts
 from tests.test_features import assert_rel_close
 
 DTYPE = torch.float64
@@ -47,11 +47,7 @@ def test_rollout_formulations_agree(gp_factory, kind, restarts, models, include_
         model, policy, quadratic_reward(3, (1,)), angle_dims=(1,), include_noise=include_noise
     )
     gen = torch.Generator().manual_seed(restarts + models)
-    root = 0.3 * torch.randn(3, 3, generator=gen, dtype=DTYPE)
-    mean = 0.3 * torch.randn(3, generator=gen, dtype=DTYPE)
-    if models > 1:  # one start per model
-        mean = mean.expand(models, 3)
-    start = Gaussian(mean, root @ root.T + 0.01 * torch.eye(3, dtype=DTYPE))
+    start = random_start(models, gen)
     psi = list(policy.parameters())
 
     with formulation("fused"):
