@@ -120,6 +120,12 @@ def load_binding(binding: Callable[[Path], Binding]) -> Binding:
         raise ImportError(f"{path.name} does not load: {err}") from err
 
 
+@functools.cache
+def binding_once(binding: Callable[[Path], Binding]) -> Binding:
+    """:func:`load_binding`, once per process for hot paths (finding the artefact hashes the sources)."""
+    return load_binding(binding)
+
+
 def load_exp_sum() -> ExpSumLibrary:
     """The exp-sum kernel built for these sources, flags and CPU; ImportError (saying why) when it cannot load."""
     return load_binding(ExpSumLibrary)

@@ -8,7 +8,6 @@ f_a(x) = Σ_i β_ai k_a(x_i, x) at x ~ N(μ, Σ), with the hand-derived adjoint 
 from __future__ import annotations
 
 import ctypes
-import functools
 import math
 from pathlib import Path
 
@@ -16,7 +15,7 @@ import torch  # first: the library then shares the libgomp torch has loaded
 from torch import Tensor
 from torch.autograd.function import FunctionCtx, once_differentiable
 
-from qtl.kernels.native.library import load_binding
+from qtl.kernels.native.library import binding_once, load_binding
 
 _PTR, _INT64, _INT = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int
 _PTRS = ctypes.POINTER(ctypes.c_void_p)
@@ -154,11 +153,6 @@ def load_se_moments() -> SEMomentsLibrary:
     return load_binding(SEMomentsLibrary)
 
 
-@functools.cache
-def cached_library() -> SEMomentsLibrary:
-    """:func:`load_se_moments`, once per process (finding the artefact hashes the sources: not per call)."""
-    return load_se_moments()
-
 
 class NativeSEKernelMoments(torch.autograd.Function):
     """Mean `... x E`, covariance `... x E x E` (without diag(α²)) and gain `... x D x E` by `se_moments.c`.
@@ -226,7 +220,7 @@ def se_kernel_moments(
     library: SEMomentsLibrary | None = None,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Mean `... x E`, cov `... x E x E` (no model variance) and gain `... x D x E` by the compiled kernel."""
-    library = library or cached_library()
+    library = library or binding_once(SEMomentsLibrary)
     return NativeSEKernelMoments.apply(
         mean, cov, inputs, beta, inv_ls, log_sf2, weights, library, torch.is_grad_enabled()
     )

@@ -19,7 +19,7 @@ from torch import Tensor
 from torch.autograd.function import FunctionCtx, once_differentiable
 
 from qtl.kernels.native.exp_sum import item_offsets
-from qtl.kernels.native.library import load_binding
+from qtl.kernels.native.library import binding_once, load_binding
 
 _PTR, _INT64 = ctypes.c_void_p, ctypes.c_int64
 
@@ -54,11 +54,6 @@ def load_trig() -> TrigLibrary:
     """The trig kernels built for these sources, flags and CPU; ImportError (saying why) when they cannot load."""
     return load_binding(TrigLibrary)
 
-
-@functools.cache
-def _library() -> TrigLibrary:
-    """:func:`load_trig`, once per process (the hot path does not hash the sources again on each call)."""
-    return load_trig()
 
 
 def applicable(*tensors: Tensor) -> bool:
@@ -198,7 +193,7 @@ def angle_feature_moments(
     """
     mean, cov = _common_batch(mean, cov)
     mean = mean if mean.stride(-1) == 1 or mean.shape[-1] == 1 else mean.contiguous()
-    return NativeAngleFeatures.apply(mean, _rows(cov), tuple(angle_dims), _library())
+    return NativeAngleFeatures.apply(mean, _rows(cov), tuple(angle_dims), binding_once(TrigLibrary))
 
 
 def sin_squash_terms(mean: Tensor, cov: Tensor, bound: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -209,5 +204,5 @@ def sin_squash_terms(mean: Tensor, cov: Tensor, bound: Tensor) -> tuple[Tensor, 
     """
     mean, cov = _common_batch(mean, cov)
     mean = mean if mean.stride(-1) == 1 or mean.shape[-1] == 1 else mean.contiguous()
-    return NativeSinSquash.apply(mean, _rows(cov), bound.contiguous(), _library())
+    return NativeSinSquash.apply(mean, _rows(cov), bound.contiguous(), binding_once(TrigLibrary))
 
