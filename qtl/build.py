@@ -14,6 +14,7 @@ from torch import Tensor, nn
 
 from qtl.data import TransitionDataset, gp_training_pairs
 from qtl.episodes import Actor, policy_actor
+from qtl.errors import UserError
 from qtl.features import AngleFeatures
 from qtl.gaussian import Gaussian
 from qtl.kernels import use_backend
@@ -56,10 +57,14 @@ class PolicyFactory(Protocol):
         output_dim: int,
         *,
         start_features: Tensor,
+        features: AngleFeatures | None = None,
         generator: torch.Generator | None = None,
         dtype: torch.dtype = torch.float64,
     ) -> Policy:
-        """π(ψ_0) on features `input_dim`, actions `output_dim`, around ``start_features`` `S x input_dim`."""
+        """π(ψ_0) on features `input_dim`, actions `output_dim`, around ``start_features`` `S x input_dim`.
+
+        ``features``: the state-to-feature map, for a policy that spreads itself over the state space.
+        """
         ...
 
 
@@ -85,7 +90,7 @@ class Parts:
         generator = torch_generator(self.seed, 0, POLICY_INIT_STREAM)
         draws = self.task.start_distribution(self.dtype).sample(START_DRAWS, generator=generator)  # START_DRAWS x D
         inner = self.make_policy(self.task.feature_dim, self.task.action_dim, start_features=self.features(draws),
-                                 generator=generator, dtype=self.dtype)
+                                 features=self.features, generator=generator, dtype=self.dtype)
         return SquashedPolicy(inner, torch.as_tensor(self.task.action_bound, dtype=self.dtype)).to(self.device)
 
     def fit_dynamics(
@@ -143,6 +148,7 @@ def build(cfg: DictConfig) -> Parts:
     check = getattr(make_propagator.func, "check_settings", None)
     if check is not None:  # e.g. an unknown propagation.sampling: a UserError here, not at the first search
         check(**make_propagator.keywords)
+    _check_dropout(cfg)
     return Parts(
         seed=int(cfg.seed),
         dtype=dtype,
@@ -157,6 +163,18 @@ def build(cfg: DictConfig) -> Parts:
         make_policy=instantiate(cfg.policy),
         kernel_backend=kernel_backend,
     )
+
+
+def _check_dropout(cfg: DictConfig) -> None:
+    """Policy dropout needs particles and a policy that can drop its basis functions: a UserError otherwise."""
+    if float(cfg.optimizer.get("dropout", 0.0) or 0.0) == 0.0:
+        return
+    if not str(cfg.propagation._target_).endswith("Particles"):
+        raise UserError("optimizer.dropout > 0 needs propagation=particles (moment matching has no dropout): "
+                        "set optimizer.dropout=0 or propagation=particles")
+    if not str(cfg.policy._target_).endswith("rbf_network_policy"):
+        raise UserError("optimizer.dropout > 0 needs policy=rbf_network (the only policy with dropout): "
+                        "set policy=rbf_network or optimizer.dropout=0")
 
 
 def transfer_plan(cfg: DictConfig, parts: Parts) -> TransferPlan:

@@ -147,6 +147,10 @@ class ParticlesConfig(PropagationConfig):
     num_features: int = field(
         default=DEFAULT_NUM_FEATURES, metadata=doc("random Fourier features L per output of a pathwise function"),
     )
+    reward_width_scale: float = field(
+        default=1.0, metadata=doc("search the task's reward with its width × this (a wider cost, as MC-PILCO's; "
+                                  "success is still the task's test; the predicted return is under it)"),
+    )
     seed: int = field(default=II("seed"), metadata=doc("seed of the base noise"))
 
 
@@ -164,6 +168,22 @@ class RBFPolicyConfig(PolicyConfig):
 
     _target_: str = "qtl.policies.rbf_policy"
     num_basis: int = field(default=II("task.policy_size"), metadata=doc("basis functions (default task.policy_size)"))
+
+
+@dataclass
+class RBFNetworkPolicyConfig(PolicyConfig):
+    """RBF network with free weights (MC-PILCO's sum of Gaussians): centres spread over the states, dropout."""
+
+    _target_: str = "qtl.policies.rbf_network_policy"
+    num_basis: int = field(default=II("task.policy_size"), metadata=doc("basis functions (default task.policy_size)"))
+    centre_range: float = field(
+        default=3.141592653589793,
+        metadata=doc("initial centres: non-angle state dims uniform in ± this, angles uniform (MC-PILCO: π)"),
+    )
+    weight_range: float = field(default=0.5, metadata=doc("initial weights uniform in ± this (before squashing)"))
+    lengthscale: float = field(
+        default=0.7071067811865476, metadata=doc("initial length-scales (MC-PILCO's 1 in its exp(−d²) form)"),
+    )
 
 
 @dataclass
@@ -192,6 +212,16 @@ class LBFGSConfig(OptimizerConfig):
 
 
 @dataclass
+class PlateauConfig:
+    """MC-PILCO's plateau rule (qtl/plateau.py): |smoothed signal-to-noise of ΔV| below a threshold for a window."""
+
+    ema: float = field(default=0.99, metadata=doc("EMA factor of the change statistics"))
+    threshold: float = field(default=0.08, metadata=doc("plateau when |ratio| stays below this (halved each plateau)"))
+    window: int = field(default=200, metadata=doc("for this many steps"))
+    min_steps: int = field(default=200, metadata=doc("no plateau before this many steps"))
+
+
+@dataclass
 class AdamConfig(OptimizerConfig):
     """Policy search by Adam (for stochastic objectives such as particle rollouts)."""
 
@@ -201,6 +231,16 @@ class AdamConfig(OptimizerConfig):
     restarts: int = field(default=1, metadata=doc("runs in all, the first from the current ψ"))
     perturbation: float = field(default=0.1, metadata=doc(PERTURBATION_HELP))
     batched: bool = field(default=True, metadata=doc(BATCHED_HELP))
+    keep: str = field(default="best", metadata=doc("best | last: the ψ a run leaves (last: for noisy objectives)"))
+    dropout: float = field(
+        default=0.0, metadata=doc("policy basis dropout during the search (MC-PILCO; policy=rbf_network, particles)"),
+    )
+    dropout_reduction: float = field(default=0.125, metadata=doc("dropout lowered by this at each plateau"))
+    plateau: Optional[PlateauConfig] = field(  # noqa: UP045
+        default=None, metadata=doc("MC-PILCO's plateau rule (null: a fixed number of steps)"),
+    )
+    lr_reduction: float = field(default=0.5, metadata=doc("learning rate × this at each plateau"))
+    lr_min: float = field(default=0.0025, metadata=doc("a plateau at this learning rate ends the run"))
 
 
 @dataclass
@@ -290,7 +330,7 @@ class AutoModelConfig(ModelConfig):
 # The group options and their schemas: `configs/<group>/<option>.yaml` names `<option>_schema` first.
 GROUP_SCHEMAS: dict[str, dict[str, type]] = {
     "propagation": {"moment_matching": MomentMatchingConfig, "particles": ParticlesConfig},
-    "policy": {"rbf": RBFPolicyConfig, "linear": LinearPolicyConfig},
+    "policy": {"rbf": RBFPolicyConfig, "rbf_network": RBFNetworkPolicyConfig, "linear": LinearPolicyConfig},
     "optimizer": {"lbfgs": LBFGSConfig, "adam": AdamConfig},
     "rule": {"none": NoTransferConfig, "free": FreeConfig, "forgetting": ForgettingConfig, "bayesian": BayesianConfig},
     "model": {"auto": AutoModelConfig, "exact": ExactModelConfig, "sparse": SparseModelConfig},

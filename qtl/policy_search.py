@@ -30,12 +30,15 @@ from torch import Tensor, nn
 
 from qtl.errors import NonFiniteObjective
 from qtl.lbfgs import Evaluation, LBFGSOptions, lbfgs
+from qtl.plateau import PlateauMonitor, PlateauRule
 from qtl.policies import Policy, psi_names, set_psi, stack_psi
 
 log = logging.getLogger(__name__)
 
 # Parameters with a spread below this are perturbed on this scale instead.
 MIN_PERTURBATION_SCALE = 1e-3
+# Which ψ a run leaves: the best it evaluated, or its last (for a noisy objective).
+KEEP = ("best", "last")
 # Errors of an evaluation at a numerically invalid ψ: they end a run (sequential) or drop a restart (batched).
 INVALID_PSI_ERRORS = (NonFiniteObjective, torch.linalg.LinAlgError)
 
@@ -66,6 +69,12 @@ def _perturb(policy: nn.Module, scale: float, generator: torch.Generator | None)
             spread = max(float(spread), MIN_PERTURBATION_SCALE)
             noise = torch.randn(p.shape, generator=generator, dtype=p.dtype).to(p.device)
             p.add_(scale * spread * noise)
+
+
+def _child_generator(generator: torch.Generator | None) -> torch.Generator:
+    """A generator seeded from ``generator`` (or torch's global one): the dropout masks' stream."""
+    seed = int(torch.randint(2**62, (1,), generator=generator))
+    return torch.Generator().manual_seed(seed)
 
 
 def _checked(value: Tensor) -> Tensor:
@@ -105,7 +114,10 @@ class _RestartingSearch:
         self.perturbation = perturbation
         self.batched = bool(batched)
 
-    def _run(self, params: list[nn.Parameter], objective: Callable[[], Tensor], tick: Callable[[], None]) -> None:
+    keep = "best"  # which ψ a run leaves (see KEEP)
+
+    def _run(self, policy: nn.Module, params: list[nn.Parameter], objective: Callable[[], Tensor],
+             tick: Callable[[], None], generator: torch.Generator | None) -> None:
         raise NotImplementedError
 
     def _run_batched(self, batch: _RestartBatch, objective: Callable[[], Tensor], tick: Callable[[], None]) -> None:
@@ -157,7 +169,12 @@ class _RestartingSearch:
 
             params = [p for p in policy.parameters() if p.requires_grad]
             try:
-                self._run(params, tracked, tick)
+                self._run(policy, params, tracked, tick, generator)
+                if self.keep == "last":  # the final ψ, valued afresh (no dropout now)
+                    with torch.no_grad():
+                        value = float(_checked(objective()))
+                    seen.calls += 1
+                    seen.value, seen.state = value, {k: v.detach().clone() for k, v in policy.state_dict().items()}
             except INVALID_PSI_ERRORS as err:
                 log.warning("policy search run %d stopped at a numerically invalid ψ (%s); "
                             "it keeps the best ψ it evaluated", run, err)
@@ -409,7 +426,8 @@ class LBFGSSearch(_RestartingSearch):
             raise ValueError(f"max_iter must be >= 1, got {max_iter}")
         self.max_iter = max_iter
 
-    def _run(self, params: list[nn.Parameter], objective: Callable[[], Tensor], tick: Callable[[], None]) -> None:
+    def _run(self, policy: nn.Module, params: list[nn.Parameter], objective: Callable[[], Tensor],
+             tick: Callable[[], None], generator: torch.Generator | None) -> None:
         optimiser = torch.optim.LBFGS(
             params, lr=1.0, max_iter=self.max_iter, max_eval=self.max_iter, line_search_fn="strong_wolfe"
         )
@@ -454,24 +472,88 @@ class AdamSearch(_RestartingSearch):
     element, so each restart follows the path it follows alone (up to round-off); a restart whose
     value or gradient turns non-finite, or whose rollout fails alone, is dropped at its best ψ and
     the others go on from where they are, their Adam moments kept.
+
+    MC-PILCO's schedule (sequential runs): ``dropout`` p > 0 drops the policy's basis functions at
+    random during the search (:meth:`~qtl.policies.Policy.set_dropout`); with ``plateau`` (a
+    :class:`~qtl.plateau.PlateauRule`) a plateau of the objective multiplies the learning rate by
+    ``lr_reduction`` (not below ``lr_min``), lowers p by ``dropout_reduction`` and restarts Adam's
+    moments, and a plateau at ``lr_min`` ends the run early. ``keep``: ``best`` (the best ψ seen,
+    for a deterministic objective) or ``last`` (the final ψ, valued by one more evaluation without
+    dropout: the best of many noisy values is biased).
     """
 
     def __init__(
-        self, steps: int = 300, lr: float = 0.01, restarts: int = 1, perturbation: float = 0.1, batched: bool = False
+        self,
+        steps: int = 300,
+        lr: float = 0.01,
+        restarts: int = 1,
+        perturbation: float = 0.1,
+        batched: bool = False,
+        *,
+        keep: str = "best",
+        dropout: float = 0.0,
+        dropout_reduction: float = 0.125,
+        plateau: PlateauRule | Mapping[str, float] | None = None,
+        lr_reduction: float = 0.5,
+        lr_min: float = 0.0025,
     ) -> None:
         super().__init__(restarts, perturbation, batched)
         if steps < 1 or lr <= 0:
             raise ValueError(f"steps must be >= 1 and lr > 0, got {steps} and {lr}")
+        if keep not in KEEP:
+            raise ValueError(f"keep must be one of {', '.join(KEEP)}, got {keep!r}")
+        if not 0.0 <= dropout < 1.0 or dropout_reduction < 0:
+            raise ValueError(f"dropout must be in [0, 1) and dropout_reduction >= 0, got {dropout} and "
+                             f"{dropout_reduction}")
+        if not 0.0 < lr_reduction <= 1.0 or not 0.0 <= lr_min <= lr:
+            raise ValueError(f"lr_reduction must be in (0, 1] and lr_min in [0, lr], got {lr_reduction} and {lr_min}")
+        if plateau is not None and not isinstance(plateau, PlateauRule):
+            plateau = PlateauRule(**plateau)
+        scheduled = keep != "best" or dropout > 0 or plateau is not None
+        if scheduled and batched and restarts > 1:
+            raise ValueError("optimizer.keep=last, optimizer.dropout and optimizer.plateau run restarts one after "
+                             "the other: set optimizer.batched=false or optimizer.restarts=1")
         self.steps, self.lr = steps, lr
+        self.keep = keep
+        self.dropout, self.dropout_reduction = float(dropout), float(dropout_reduction)
+        self.plateau = plateau
+        self.lr_reduction, self.lr_min = float(lr_reduction), float(lr_min)
+        if scheduled:
+            self.batched = False  # one restart: the sequential run is the batched one
 
-    def _run(self, params: list[nn.Parameter], objective: Callable[[], Tensor], tick: Callable[[], None]) -> None:
-        optimiser = torch.optim.Adam(params, lr=self.lr)
-        for _ in range(self.steps):
-            optimiser.zero_grad()
-            loss = -_checked(objective())
-            loss.backward()
-            optimiser.step()
-            tick()
+    def _run(self, policy: nn.Module, params: list[nn.Parameter], objective: Callable[[], Tensor],
+             tick: Callable[[], None], generator: torch.Generator | None) -> None:
+        lr, dropout = self.lr, self.dropout
+        if dropout > 0:
+            policy.set_dropout(dropout, _child_generator(generator))
+        try:
+            optimiser = torch.optim.Adam(params, lr=lr)
+            monitor = None
+            for _ in range(self.steps):
+                optimiser.zero_grad()
+                value = _checked(objective())
+                (-value).backward()
+                optimiser.step()
+                tick()
+                if self.plateau is None:
+                    continue
+                if monitor is None:
+                    monitor = PlateauMonitor(self.plateau, float(value.detach()))
+                    continue
+                if not monitor.update(float(value.detach())):
+                    continue
+                if lr <= self.lr_min:
+                    log.info("policy search: plateau at lr %.4g after %d steps: stopped", lr, monitor.step + 1)
+                    break
+                lr = max(lr * self.lr_reduction, self.lr_min)
+                dropout = max(dropout - self.dropout_reduction, 0.0)
+                log.info("policy search: plateau after %d steps: lr %.4g, dropout %.3g", monitor.step + 1, lr, dropout)
+                monitor.annealed()
+                policy.set_dropout(dropout, _child_generator(generator) if dropout > 0 else None)
+                optimiser = torch.optim.Adam(params, lr=lr)
+        finally:
+            if self.dropout > 0:
+                policy.set_dropout(0.0)
 
     def _run_batched(self, batch: _RestartBatch, objective: Callable[[], Tensor], tick: Callable[[], None]) -> None:
         optimiser = torch.optim.Adam(batch.trainable(), lr=self.lr)

@@ -84,6 +84,12 @@ class ExpectedSaturatingReward:
         """Build from any object with ``state_dim``, ``angle_dims``, ``target``, ``weight_matrix``."""
         return cls(spec.state_dim, spec.angle_dims, spec.target, spec.weight_matrix)
 
+    def widened(self, scale: float) -> ExpectedSaturatingReward:
+        """The same reward with its width × ``scale`` (W / scale²): a wider search reward (MC-PILCO's cost)."""
+        if not scale > 0:
+            raise ValueError(f"reward width scale must be > 0, got {scale}")
+        return ExpectedSaturatingReward(self.state_dim, self.features.angle_dims, self.target, self.weight / scale**2)
+
     @property
     def state_dim(self) -> int:
         """D, the raw state dimension."""

@@ -27,7 +27,7 @@ LAYERS: list[tuple[str, set[str]]] = [
     ("envs", {"envs"}),
     ("foundation", {"qtl.errors", "qtl.gaussian", "qtl.seeding"}),
     ("data, task", {"qtl.data", "qtl.task"}),
-    ("maths", {"qtl.kernels", "qtl.lbfgs"}),
+    ("maths", {"qtl.kernels", "qtl.lbfgs", "qtl.plateau"}),
     ("parts", {"qtl.features", "qtl.models", "qtl.policies", "qtl.rewards"}),
     ("policy search", {"qtl.policy_search"}),
     ("propagation", {"qtl.propagation"}),

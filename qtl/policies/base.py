@@ -39,6 +39,11 @@ class Policy(nn.Module, ABC):
     def prepare(self) -> GaussianMap:
         """The moment-matching map of this policy with its ψ-only quantities precomputed."""
 
+    def set_dropout(self, rate: float, generator: torch.Generator | None = None) -> None:
+        """Drop parts of the policy at random in ``forward`` with probability ``rate`` (0: off); some policies can."""
+        if rate != 0.0:
+            raise ValueError(f"{type(self).__name__} has no dropout: use policy=rbf_network, or optimizer.dropout=0")
+
     def moments(self, state: Gaussian) -> MomentMatch:
         """Mean `... x F`, covariance `... x F x F` and input–output terms `... x D x F` of π(y)."""
         return self.prepare()(state)

@@ -138,6 +138,10 @@ class SquashedPolicy(Policy):
             raise ValueError(f"action_bound must be positive, one per action ({self.output_dim})")
         self.register_buffer("action_bound", bound)
 
+    def set_dropout(self, rate: float, generator: torch.Generator | None = None) -> None:
+        """The wrapped policy's dropout (see :meth:`Policy.set_dropout`)."""
+        self.policy.set_dropout(rate, generator)
+
     def forward(self, x: Tensor) -> Tensor:
         """Squashed actions `... x F` for features `... x D`."""
         return sin_squash(self.policy(x), self.action_bound.to(x))

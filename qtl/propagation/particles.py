@@ -124,8 +124,9 @@ class Particles:
     after every step, replace the particles by draws from their fitted Gaussian (PIPPS's GR; see
     the module docstring). ``sampling``: ``marginal`` (a fresh GP draw every step) or ``pathwise``
     (one function per particle for the rollout; see the module docstring), with ``num_features``
-    random Fourier features L per output. ``seed``: of the base noise. ``dtype``: of the propagation
-    (default: the cache's); the policy must share it.
+    random Fourier features L per output. ``reward_width_scale``: the search scores the task's reward
+    with its width × this (MC-PILCO's wider cost; 1: the task's own). ``seed``: of the base noise.
+    ``dtype``: of the propagation (default: the cache's); the policy must share it.
     """
 
     @staticmethod
@@ -135,6 +136,7 @@ class Particles:
         seed: int = 0,
         sampling: str = "marginal",
         num_features: int = DEFAULT_NUM_FEATURES,
+        reward_width_scale: float = 1.0,
         **_: object,
     ) -> None:
         """The settings' ranges, checked before any work (``qtl.build`` calls it): a UserError naming what to fix."""
@@ -148,6 +150,10 @@ class Particles:
             raise UserError(f"propagation.sampling must be one of {', '.join(SAMPLING)}, got {sampling!r}")
         if num_features < 1:
             raise UserError(f"propagation.num_features must be >= 1 (random Fourier features), got {num_features}")
+        if not reward_width_scale > 0:
+            raise UserError(
+                f"propagation.reward_width_scale must be > 0 (1: the task's reward), got {reward_width_scale}"
+            )
 
     def __init__(
         self,
@@ -163,15 +169,16 @@ class Particles:
         gaussian_resampling: bool = False,
         sampling: str = "marginal",
         num_features: int = DEFAULT_NUM_FEATURES,
+        reward_width_scale: float = 1.0,
         seed: int = 0,
         dtype: torch.dtype | None = None,
     ) -> None:
         self.check_settings(num_particles=num_particles, resample_every=resample_every, seed=seed,
-                            sampling=sampling, num_features=num_features)
+                            sampling=sampling, num_features=num_features, reward_width_scale=reward_width_scale)
         data, self.features, self.dtype = propagation_inputs(model, policy, reward, angle_dims, dtype)
         self.state_dim = self.features.state_dim
         self.policy = policy
-        self.reward = reward
+        self.reward = reward if reward_width_scale == 1.0 else reward.widened(reward_width_scale)
         self.num_particles = int(num_particles)
         self.resample_every = int(resample_every)
         self.include_noise = include_noise
