@@ -91,16 +91,20 @@ def variant_name(variant: tuple[str, bool, str]) -> str:
 PROPAGATORS: dict[str, list[str]] = {
     "moment_matching": ["propagation=moment_matching", "optimizer=lbfgs"],
     "particles": ["propagation=particles", "optimizer=adam", "optimizer.steps=500"],
+    # Pathwise GP samples (issue 19), with the random features of the mc_pilco recipe; marginal is the row above.
+    "particles_pathwise": ["propagation=particles", "propagation.sampling=pathwise", "propagation.num_features=256",
+                           "optimizer=adam", "optimizer.steps=500"],
 }
 # Issue 8's targets: wall time of one policy search, by (propagator, n), in seconds.
 TARGETS: dict[tuple[str, int], float] = {
     ("moment_matching", 250): 15.0,
     ("moment_matching", 500): 30.0,
-    ("particles", 250): 60.0,
+    ("particles_pathwise", 250): 60.0,
 }
 TARGET_NOTES = {
     "moment_matching": "one policy search",
     "particles": "500 Adam steps, P = 400",
+    "particles_pathwise": "500 Adam steps, P = 400, pathwise sampling",
 }
 # Established implementations as issue 8 quotes them: context, not measured here.
 QUOTED_REFERENCES = [
@@ -475,6 +479,25 @@ def floor_lines(results: list[dict[str, Any]]) -> list[str]:
     return lines
 
 
+def sampling_ratio_lines(results: list[dict[str, Any]]) -> list[str]:
+    """Per n and dtype with both particle rows: pathwise over marginal, for the search and the rollout + gradient."""
+    lines = []
+    rows = {(r["propagator"], r["n"], r["dtype"]): r for r in results if "error" not in r}
+    for (name, n, dtype), pathwise in rows.items():
+        marginal = rows.get(("particles", n, dtype))
+        if name != "particles_pathwise" or marginal is None:
+            continue
+        parts = []
+        for key, what in (("search_s", "policy search"), ("rollout_grad_s_median", "rollout + gradient")):
+            if key in pathwise and key in marginal:
+                ratio = pathwise[key] / marginal[key]
+                parts.append(f"{what} {pathwise[key]:.2f} s vs {marginal[key]:.2f} s ({ratio:.2f}×, "
+                             f"{1 / ratio:.1f}× faster)")
+        if parts:
+            lines.append(f"- n = {n}, {dtype}: " + "; ".join(parts))
+    return lines
+
+
 def markdown(results: list[dict[str, Any]], info: dict[str, Any], comparison: list[dict[str, Any]]) -> str:
     """The section of docs/benchmarks.md."""
     m = info["machine"]
@@ -511,6 +534,9 @@ def markdown(results: list[dict[str, Any]], info: dict[str, Any], comparison: li
         )
     if errors:
         lines += ["", "Errors:", "", *errors]
+    ratios = sampling_ratio_lines(results)
+    if ratios:
+        lines += ["", "Pathwise against marginal particle sampling, measured in this run:", "", *ratios]
     floors = floor_lines(results)
     if floors:
         lines += ["", FLOOR_DESCRIPTION, "", *floors]
@@ -571,7 +597,8 @@ def main() -> None:
     # --compare-only writes beside the full run's results and section, never over them.
     suffix = ("_compare" if args.compare_only else "") + ("" if device.type == "cpu" else f"-{device.type}")
     output = (args.output or DEFAULT_OUTPUT.with_stem(DEFAULT_OUTPUT.stem + suffix)).resolve()
-    per_propagator = {"moment_matching": args.mm_overrides, "particles": args.particles_overrides}
+    per_propagator = {"moment_matching": args.mm_overrides, "particles": args.particles_overrides,
+                      "particles_pathwise": args.particles_overrides}
     data_cfg = compose_config("moment_matching", "float64", args.overrides)
     results, models, comparison = [], {}, []
     compare_sizes = [] if args.no_compare else args.compare_sizes

@@ -25,7 +25,7 @@ TINY = [
 
 
 def test_smallest_configuration_measures_both_propagators_without_touching_docs(tmp_path: Path) -> None:
-    """Both propagators and the 7 comparison variants are timed at n = 60, JSON to --output, docs/ unchanged."""
+    """Both propagators (particles: marginal, pathwise) and the comparison variants timed at n = 60; docs/ unchanged."""
     docs = ROOT / "docs" / "benchmarks.md"
     before = docs.read_bytes() if docs.exists() else None
     output = tmp_path / "policy_search.json"
@@ -38,15 +38,21 @@ def test_smallest_configuration_measures_both_propagators_without_touching_docs(
     assert (docs.read_bytes() if docs.exists() else None) == before
     report = json.loads(output.read_text())
     assert [(r["propagator"], r["n"], r["dtype"]) for r in report["results"]] == [
-        ("moment_matching", 60, "float64"), ("particles", 60, "float64")]
+        ("moment_matching", 60, "float64"), ("particles", 60, "float64"), ("particles_pathwise", 60, "float64")]
     for row in report["results"]:
         assert "error" not in row, row["error"]
         assert row["horizon"] == 10
         assert row["rollout_grad_s_median"] > 0 and row["search_s"] > 0 and row["peak_rss_mib"] > 0
         assert row["evaluations"] >= 3
         assert row["met"] == "—"  # no target at n = 60
-    mm, particles = report["results"]
+    mm, particles, pathwise = report["results"]
     assert "variance_products_s_per_evaluation" not in mm
+    assert particles["propagation"]["sampling"] == "marginal" and pathwise["propagation"]["sampling"] == "pathwise"
+    assert pathwise["propagation"]["num_features"] == 256 and pathwise["optimizer"]["steps"] == 3
+    # Pathwise against marginal, in the same run: both times and their ratio in the section.
+    ratio = pathwise["search_s"] / particles["search_s"]
+    assert "Pathwise against marginal" in done.stdout
+    assert f"policy search {pathwise['search_s']:.2f} s vs {particles['search_s']:.2f} s ({ratio:.2f}×" in done.stdout
     # The particles' floor: H products, each a part of what one rollout + gradient does.
     assert 0 < particles["variance_products_s_per_evaluation"] < particles["rollout_grad_s_median"]
     assert "arithmetic floor" in done.stdout and "s for 3 steps" in done.stdout
