@@ -38,10 +38,24 @@
 #include <omp.h>
 #include <stdint.h>
 #include <stdlib.h>
+#include <string.h>
 
 #define ROWS_PER_UNIT 32 /* particle rows per work unit */
-#define PAD 8            /* the transposed tiles' rows are padded to a multiple of this many doubles */
-#define ALIGN 64         /* bytes: the scratch's alignment */
+/* LANES: doubles per vector register of the CPU compiled for; UNROLL vectors per step of the dot
+ * products (independent accumulators, so that the FMA latency is hidden). */
+#if defined(__AVX512F__)
+#define LANES 8
+#elif defined(__AVX__)
+#define LANES 4
+#else
+#define LANES 2
+#endif
+#define UNROLL 4
+#define PAD (LANES * UNROLL) /* the tiles' and buffers' rows are padded to a multiple of this many doubles */
+#define ALIGN 64             /* bytes: the scratch's alignment (at least a vector's, and PAD doubles' multiple) */
+_Static_assert(ALIGN % (LANES * sizeof(double)) == 0 && (PAD * sizeof(double)) % ALIGN == 0, "aligned vectors");
+
+typedef double vec __attribute__((vector_size(LANES * sizeof(double))));
 
 /* The vector variants exist in libmvec; glibc only announces them under -ffast-math. */
 #pragma omp declare simd notinbranch
@@ -76,75 +90,118 @@ static void transpose(const double *src, int64_t rows, int64_t dim, int64_t stri
     }
 }
 
+static inline vec load(const double *p) { return *(const vec *)p; }
+
+static inline double lane_sum(vec v)
+{
+    double total = 0.0;
+    for (int k = 0; k < LANES; ++k)
+        total += v[k];
+    return total;
+}
+
+/* Σ_j a_j b_j over `count` (a multiple of PAD) aligned doubles, in UNROLL vector accumulators. */
+static inline double dot(const double *restrict a, const double *restrict b, int64_t count)
+{
+    vec acc[UNROLL] = {0};
+    for (int64_t j = 0; j < count; j += PAD)
+        _Pragma("GCC unroll 4") for (int u = 0; u < UNROLL; ++u) acc[u] += load(a + j + u * LANES) * load(b + j + u * LANES);
+    return lane_sum(acc[0] + acc[1] + acc[2] + acc[3]);
+}
+
+static inline vec load_unaligned(const double *p)
+{
+    vec v;
+    memcpy(&v, p, sizeof v);
+    return v;
+}
+
+/* Σ_j a_j b_j for j < count (a aligned, b not), in UNROLL vector accumulators; with out, also
+ * out_j = a_j b_j (out may be a). */
+static inline double mul_sum(const double *a, const double *restrict b, int64_t count, double *out)
+{
+    vec acc[UNROLL] = {0};
+    int64_t j = 0;
+    for (; j + PAD <= count; j += PAD)
+        _Pragma("GCC unroll 4") for (int u = 0; u < UNROLL; ++u) {
+            const vec prod = load(a + j + u * LANES) * load_unaligned(b + j + u * LANES);
+            if (out)
+                *(vec *)(out + j + u * LANES) = prod;
+            acc[u] += prod;
+        }
+    for (; j + LANES <= count; j += LANES) {
+        const vec prod = load(a + j) * load_unaligned(b + j);
+        if (out)
+            *(vec *)(out + j) = prod;
+        acc[0] += prod;
+    }
+    double total = lane_sum(acc[0] + acc[1] + acc[2] + acc[3]);
+    for (; j < count; ++j) {
+        const double prod = a[j] * b[j];
+        if (out)
+            out[j] = prod;
+        total += prod;
+    }
+    return total;
+}
+
+/* out_j = bias_j + Σ_d (z_d − t_dj)² (square) or bias_j + Σ_d z_d t_dj (otherwise), for the `dim x ld`
+ * tile t, j < ld (a multiple of PAD), UNROLL vectors of j at a time with their sums in registers. */
+static inline void tile_pass(const double *restrict t, const double *restrict zr, const double *restrict bias,
+                             int64_t dim, int64_t ld, int square, double *restrict out)
+{
+    for (int64_t j = 0; j < ld; j += PAD) {
+        vec acc[UNROLL];
+        _Pragma("GCC unroll 4") for (int u = 0; u < UNROLL; ++u) acc[u] = bias ? load(bias + j + u * LANES) : (vec){0};
+        for (int64_t d = 0; d < dim; ++d) {
+            const double zd = zr[d];
+            _Pragma("GCC unroll 4") for (int u = 0; u < UNROLL; ++u) {
+                const vec td = load(t + d * ld + j + u * LANES);
+                if (square) {
+                    const vec diff = td - zd;
+                    acc[u] += diff * diff;
+                } else {
+                    acc[u] += zd * td;
+                }
+            }
+        }
+        _Pragma("GCC unroll 4") for (int u = 0; u < UNROLL; ++u) *(vec *)(out + j + u * LANES) = acc[u];
+    }
+}
+
 /* f (returned) and, when g is not NULL, ∂f/∂z̃ into g `D`, for one particle row. */
 static double row_value(const double *restrict zr, const double *restrict vr, const double *restrict wr,
-                        double log_sf2, const struct scratch *sc, int64_t n,
-                        int64_t np, int64_t num_features, int64_t lp, int64_t dim, double *restrict g)
+                        double log_sf2, const struct scratch *sc, int64_t n, int64_t np, int64_t num_features,
+                        int64_t lp, int64_t dim, double *restrict g)
 {
     const double *restrict x_t = sc->x_t, *restrict omega_t = sc->omega_t;
-    const double *restrict phase = sc->phase;
     double *restrict kv = sc->kv, *restrict angle = sc->angle, *restrict trig = sc->trig;
-    /* 1. the data-fitted part: Σ_i k_i v_pi. |z̃ − x̃_i|² is summed in kv one input dimension at a time,
-     * then exp'd, over the padded length (the tiles' padding is 0): the vector loops have no tails. */
-#pragma omp simd aligned(kv : ALIGN)
-    for (int64_t i = 0; i < np; ++i)
-        kv[i] = 0.0;
-    for (int64_t d = 0; d < dim; ++d) {
-        const double *restrict xd = x_t + d * np;
-        const double zd = zr[d];
-#pragma omp simd aligned(xd, kv : ALIGN)
-        for (int64_t i = 0; i < np; ++i) {
-            const double diff = xd[i] - zd;
-            kv[i] += diff * diff;
-        }
-    }
+    /* 1. the data-fitted part: Σ_i k_i v_pi, over the padded length (the tiles' padding is 0) and
+     * the padding of k_i v_pi set to 0 */
+    tile_pass(x_t, zr, NULL, dim, np, 1, kv);
 #pragma omp simd aligned(kv : ALIGN)
     for (int64_t i = 0; i < np; ++i)
         kv[i] = exp(log_sf2 - 0.5 * kv[i]);
-    double fitted = 0.0;
-#pragma omp simd reduction(+ : fitted) aligned(kv : ALIGN)
-    for (int64_t i = 0; i < n; ++i) {
-        kv[i] *= vr[i];
-        fitted += kv[i];
-    }
-    /* 2. the prior part: a_l one input dimension at a time, then Σ_l W_pl cos(a_l) (and W_pl sin(a_l) kept) */
-#pragma omp simd aligned(angle, phase : ALIGN)
-    for (int64_t l = 0; l < lp; ++l)
-        angle[l] = phase[l];
-    for (int64_t d = 0; d < dim; ++d) {
-        const double *restrict od = omega_t + d * lp;
-        const double zd = zr[d];
-#pragma omp simd aligned(od, angle : ALIGN)
-        for (int64_t l = 0; l < lp; ++l)
-            angle[l] += zd * od[l];
-    }
+    const double fitted = mul_sum(kv, vr, n, kv);
+    for (int64_t i = n; i < np; ++i)
+        kv[i] = 0.0;
+    /* 2. the prior part: a_l, then Σ_l W_pl cos(a_l) (and with g, W_pl sin(a_l), its padding 0) */
+    tile_pass(omega_t, zr, sc->phase, dim, lp, 0, angle);
 #pragma omp simd aligned(angle, trig : ALIGN)
     for (int64_t l = 0; l < lp; ++l)
         trig[l] = cos(angle[l]);
-    double prior = 0.0;
-#pragma omp simd reduction(+ : prior) aligned(trig : ALIGN)
-    for (int64_t l = 0; l < num_features; ++l)
-        prior += wr[l] * trig[l];
+    const double prior = mul_sum(trig, wr, num_features, NULL);
     if (!g)
         return fitted + prior;
 #pragma omp simd aligned(angle, trig : ALIGN)
     for (int64_t l = 0; l < lp; ++l)
         trig[l] = sin(angle[l]);
-#pragma omp simd aligned(trig : ALIGN)
-    for (int64_t l = 0; l < num_features; ++l)
-        trig[l] *= wr[l];
+    mul_sum(trig, wr, num_features, trig);
+    for (int64_t l = num_features; l < lp; ++l)
+        trig[l] = 0.0;
     /* 3. ∂f/∂z̃_d = Σ_i k_i v_pi x̃_id − z̃_d Σ_i k_i v_pi − Σ_l W_pl sin(a_l) ω̃_ld */
-    for (int64_t d = 0; d < dim; ++d) {
-        const double *restrict xd = x_t + d * np, *restrict od = omega_t + d * lp;
-        double data_part = 0.0, feature_part = 0.0;
-#pragma omp simd reduction(+ : data_part) aligned(xd, kv : ALIGN)
-        for (int64_t i = 0; i < n; ++i)
-            data_part += kv[i] * xd[i];
-#pragma omp simd reduction(+ : feature_part) aligned(od, trig : ALIGN)
-        for (int64_t l = 0; l < num_features; ++l)
-            feature_part += trig[l] * od[l];
-        g[d] = data_part - zr[d] * fitted - feature_part;
-    }
+    for (int64_t d = 0; d < dim; ++d)
+        g[d] = dot(kv, x_t + d * np, np) - zr[d] * fitted - dot(trig, omega_t + d * lp, lp);
     return fitted + prior;
 }
 
