@@ -30,7 +30,10 @@ import torch
 from torch import Tensor
 from torch.autograd.function import FunctionCtx, once_differentiable
 
+from qtl.kernels.exp_sum import active_backend
 from qtl.kernels.gp_predictive import se_kernel_rows
+from qtl.kernels.native.pathwise import native_fits
+from qtl.kernels.native.pathwise import path_values as native_path_values
 
 # The dtype the random numbers are drawn in, whatever the propagation's (as the base noise).
 DRAW_DTYPE = torch.float64
@@ -133,5 +136,9 @@ def path_values(z: Tensor, data: Tensor, data_sq: Tensor, signal_variance: Tenso
 
     ``data`` `... x E x n x D` and ``data_sq`` `... x E x n` as in :func:`~qtl.kernels.gp_predictive`;
     ``signal_variance`` α² `... x E`; ``paths`` from :func:`matheron_paths`. Differentiable in ``z``.
+    Float64 CPU operands take the compiled kernel (`qtl/kernels/native/pathwise.c`) when the exp sums'
+    backend is native (``qtl.kernels.use_backend``); everything else the torch ``_PathValues``.
     """
+    if active_backend() == "native" and native_fits(z, data, signal_variance, *paths):
+        return native_path_values(z, data, signal_variance, *paths)
     return _PathValues.apply(z, data, data_sq, signal_variance, paths)

@@ -1,0 +1,262 @@
+/* qtl native kernel: pathwise GP posterior functions (Matheron's rule) at one point per particle.
+ *
+ * Maths (float64). For each item b (a batch index and an output e) and each particle row p, with the
+ * point z̃ = z_bp `D`, the data x̃_i `D` (i < n), the frequencies ω̃_l `D` and phases b_l (l < L), the
+ * feature weights W_pl and the update v_pi, and α² the signal variance:
+ *   k_i      = α² exp(−½ |z̃ − x̃_i|²)                     (the SE kernel over the lengthscales)
+ *   a_l      = ω̃_lᵀ z̃ + b_l
+ *   f        = Σ_l W_pl cos(a_l) + Σ_i k_i v_pi
+ *   ∂f/∂z̃   = Σ_i k_i v_pi (x̃_i − z̃) − Σ_l W_pl sin(a_l) ω̃_l           (when grad is not NULL)
+ * |z̃ − x̃_i|² is summed as squared differences (never negative, so no clamp is needed). The
+ * plain-torch reference twin is `qtl.propagation.pathwise._PathValues` (which forms the same
+ * distance as |z̃|² + |x̃|² − 2 z̃ᵀx̃, clamped); see qtl/kernels/native/pathwise.py.
+ *
+ * Layout: operand item b starts at element offset offsets[k * items + b] for the operands, in this
+ * order, k = 0..6: z `P x D`, x `n x D`, sf2 (one value), omega `L x D`, phase `L`, w `P x L`,
+ * v `P x n`; a broadcast operand repeats an offset (its copies are never materialised). Within an
+ * item the rows of z, x, omega, w, v are row_strides[0..4] elements apart (0: one row broadcast over
+ * the particles) and each row is contiguous. Outputs are dense: f `items x P`, grad `items x P x D`.
+ *
+ * Work: one unit = (item, ROWS_PER_UNIT particle rows), units in item order under OpenMP (static
+ * schedule, the thread count passed per call, torch.get_num_threads()). A thread first transposes
+ * its item's data to `D x n` and frequencies to `D x L` (skipped when its previous unit had the same
+ * ones), so that every inner loop of a row runs over i or l with unit stride, a vector at a time:
+ *   1. |z̃ − x̃_i|² for all i, one pass per input dimension; exp; times v_pi, summed;
+ *   2. a_l for all l, one pass per input dimension; cos; times W_pl, summed (and with grad: sin, times W_pl);
+ *   3. with grad: Σ_i k_i v_pi x̃_i and Σ_l W_pl sin(a_l) ω̃_l, one pass over i and one over l per dimension.
+ * The exp, cos and sin loops run over the lengths padded to PAD (the tiles' padding is 0), so they
+ * have no scalar tails.
+ * Each row is computed by one thread alone: results are bit-identical for any thread count.
+ *
+ * Build: with the other sources of this directory (qtl/kernels/native/build.py):
+ *   gcc -O3 -march=native -fno-math-errno -fopenmp -fPIC -shared -Wall -Wextra ... -lm
+ * exp, sin and cos are declared `omp declare simd` below, so gcc vectorises the loops of steps 1 and 3
+ * through glibc's libmvec (_ZGVeN8v_exp / _ZGVeN8v_sin / _ZGVeN8v_cos with AVX-512, the _ZGVd..4v
+ * variants with AVX2) without -ffast-math; libmvec is within 4 ulp.
+ */
+#include <math.h>
+#include <omp.h>
+#include <stdint.h>
+#include <stdlib.h>
+#include <string.h>
+
+#define ROWS_PER_UNIT 32 /* particle rows per work unit */
+/* LANES: doubles per vector register of the CPU compiled for; UNROLL vectors per step of the dot
+ * products (independent accumulators, so that the FMA latency is hidden). */
+#if defined(__AVX512F__)
+#define LANES 8
+#elif defined(__AVX__)
+#define LANES 4
+#else
+#define LANES 2
+#endif
+#define UNROLL 4
+#define PAD (LANES * UNROLL) /* the tiles' and buffers' rows are padded to a multiple of this many doubles */
+#define ALIGN 64             /* bytes: the scratch's alignment (at least a vector's, and PAD doubles' multiple) */
+_Static_assert(ALIGN % (LANES * sizeof(double)) == 0 && (PAD * sizeof(double)) % ALIGN == 0, "aligned vectors");
+
+typedef double vec __attribute__((vector_size(LANES * sizeof(double))));
+
+/* The vector variants exist in libmvec; glibc only announces them under -ffast-math. */
+#pragma omp declare simd notinbranch
+extern double exp(double);
+#pragma omp declare simd notinbranch
+extern double sin(double);
+#pragma omp declare simd notinbranch
+extern double cos(double);
+
+static int64_t padded(int64_t count) { return (count + PAD - 1) / PAD * PAD; }
+
+/* One thread's scratch: the transposed tiles, the per-row buffers and what the tiles hold now. */
+struct scratch {
+    double *x_t;     /* `D x np`: the item's data, transposed */
+    double *omega_t; /* `D x lp`: the item's frequencies, transposed */
+    double *phase;   /* `lp`: the item's phases, padded with 0 */
+    double *kv;      /* `np`: k_i v_pi of the current row */
+    double *angle;   /* `lp`: a_l of the current row */
+    double *trig;    /* `lp`: cos(a_l), then W_pl sin(a_l) of the current row */
+    int64_t x_off, omega_off, phase_off; /* the offsets the tiles were copied from (−1: none yet) */
+};
+
+/* The row-major `rows x dim` matrix at src (rows `stride` apart) transposed into dst `dim x ld`, the
+ * padding columns rows..ld−1 set to 0. */
+static void transpose(const double *src, int64_t rows, int64_t dim, int64_t stride, double *dst, int64_t ld)
+{
+    for (int64_t d = 0; d < dim; ++d) {
+        for (int64_t r = 0; r < rows; ++r)
+            dst[d * ld + r] = src[r * stride + d];
+        for (int64_t r = rows; r < ld; ++r)
+            dst[d * ld + r] = 0.0;
+    }
+}
+
+static inline vec load(const double *p) { return *(const vec *)p; }
+
+static inline double lane_sum(vec v)
+{
+    double total = 0.0;
+    for (int k = 0; k < LANES; ++k)
+        total += v[k];
+    return total;
+}
+
+/* Σ_j a_j b_j over `count` (a multiple of PAD) aligned doubles, in UNROLL vector accumulators. */
+static inline double dot(const double *restrict a, const double *restrict b, int64_t count)
+{
+    vec acc[UNROLL] = {0};
+    for (int64_t j = 0; j < count; j += PAD)
+        _Pragma("GCC unroll 4") for (int u = 0; u < UNROLL; ++u) acc[u] += load(a + j + u * LANES) * load(b + j + u * LANES);
+    return lane_sum(acc[0] + acc[1] + acc[2] + acc[3]);
+}
+
+static inline vec load_unaligned(const double *p)
+{
+    vec v;
+    memcpy(&v, p, sizeof v);
+    return v;
+}
+
+/* Σ_j a_j b_j for j < count (a aligned, b not), in UNROLL vector accumulators; with out, also
+ * out_j = a_j b_j (out may be a). */
+static inline double mul_sum(const double *a, const double *restrict b, int64_t count, double *out)
+{
+    vec acc[UNROLL] = {0};
+    int64_t j = 0;
+    for (; j + PAD <= count; j += PAD)
+        _Pragma("GCC unroll 4") for (int u = 0; u < UNROLL; ++u) {
+            const vec prod = load(a + j + u * LANES) * load_unaligned(b + j + u * LANES);
+            if (out)
+                *(vec *)(out + j + u * LANES) = prod;
+            acc[u] += prod;
+        }
+    for (; j + LANES <= count; j += LANES) {
+        const vec prod = load(a + j) * load_unaligned(b + j);
+        if (out)
+            *(vec *)(out + j) = prod;
+        acc[0] += prod;
+    }
+    double total = lane_sum(acc[0] + acc[1] + acc[2] + acc[3]);
+    for (; j < count; ++j) {
+        const double prod = a[j] * b[j];
+        if (out)
+            out[j] = prod;
+        total += prod;
+    }
+    return total;
+}
+
+/* out_j = bias_j + Σ_d (z_d − t_dj)² (square) or bias_j + Σ_d z_d t_dj (otherwise), for the `dim x ld`
+ * tile t, j < ld (a multiple of PAD), UNROLL vectors of j at a time with their sums in registers. */
+static inline void tile_pass(const double *restrict t, const double *restrict zr, const double *restrict bias,
+                             int64_t dim, int64_t ld, int square, double *restrict out)
+{
+    for (int64_t j = 0; j < ld; j += PAD) {
+        vec acc[UNROLL];
+        _Pragma("GCC unroll 4") for (int u = 0; u < UNROLL; ++u) acc[u] = bias ? load(bias + j + u * LANES) : (vec){0};
+        for (int64_t d = 0; d < dim; ++d) {
+            const double zd = zr[d];
+            _Pragma("GCC unroll 4") for (int u = 0; u < UNROLL; ++u) {
+                const vec td = load(t + d * ld + j + u * LANES);
+                if (square) {
+                    const vec diff = td - zd;
+                    acc[u] += diff * diff;
+                } else {
+                    acc[u] += zd * td;
+                }
+            }
+        }
+        _Pragma("GCC unroll 4") for (int u = 0; u < UNROLL; ++u) *(vec *)(out + j + u * LANES) = acc[u];
+    }
+}
+
+/* f (returned) and, when g is not NULL, ∂f/∂z̃ into g `D`, for one particle row. */
+static double row_value(const double *restrict zr, const double *restrict vr, const double *restrict wr,
+                        double log_sf2, const struct scratch *sc, int64_t n, int64_t np, int64_t num_features,
+                        int64_t lp, int64_t dim, double *restrict g)
+{
+    const double *restrict x_t = sc->x_t, *restrict omega_t = sc->omega_t;
+    double *restrict kv = sc->kv, *restrict angle = sc->angle, *restrict trig = sc->trig;
+    /* 1. the data-fitted part: Σ_i k_i v_pi, over the padded length (the tiles' padding is 0) and
+     * the padding of k_i v_pi set to 0 */
+    tile_pass(x_t, zr, NULL, dim, np, 1, kv);
+#pragma omp simd aligned(kv : ALIGN)
+    for (int64_t i = 0; i < np; ++i)
+        kv[i] = exp(log_sf2 - 0.5 * kv[i]);
+    const double fitted = mul_sum(kv, vr, n, kv);
+    for (int64_t i = n; i < np; ++i)
+        kv[i] = 0.0;
+    /* 2. the prior part: a_l, then Σ_l W_pl cos(a_l) (and with g, W_pl sin(a_l), its padding 0) */
+    tile_pass(omega_t, zr, sc->phase, dim, lp, 0, angle);
+#pragma omp simd aligned(angle, trig : ALIGN)
+    for (int64_t l = 0; l < lp; ++l)
+        trig[l] = cos(angle[l]);
+    const double prior = mul_sum(trig, wr, num_features, NULL);
+    if (!g)
+        return fitted + prior;
+#pragma omp simd aligned(angle, trig : ALIGN)
+    for (int64_t l = 0; l < lp; ++l)
+        trig[l] = sin(angle[l]);
+    mul_sum(trig, wr, num_features, trig);
+    for (int64_t l = num_features; l < lp; ++l)
+        trig[l] = 0.0;
+    /* 3. ∂f/∂z̃_d = Σ_i k_i v_pi x̃_id − z̃_d Σ_i k_i v_pi − Σ_l W_pl sin(a_l) ω̃_ld */
+    for (int64_t d = 0; d < dim; ++d)
+        g[d] = dot(kv, x_t + d * np, np) - zr[d] * fitted - dot(trig, omega_t + d * lp, lp);
+    return fitted + prior;
+}
+
+int qtl_path_values(const double *z, const double *x, const double *sf2, const double *omega, const double *phase,
+                    const double *w, const double *v, const int64_t *offsets, const int64_t *row_strides,
+                    int64_t items, int64_t num_rows, int64_t n, int64_t num_features, int64_t dim, double *f,
+                    double *grad, int threads)
+{
+    const int64_t np = padded(n), lp = padded(num_features);
+    const int64_t per_thread = dim * np + dim * lp + np + 3 * lp; /* multiples of PAD doubles: aligned parts */
+    const int64_t units_per_item = (num_rows + ROWS_PER_UNIT - 1) / ROWS_PER_UNIT, units = items * units_per_item;
+    if (threads < 1)
+        threads = 1;
+    if (units < threads)
+        threads = units > 0 ? (int)units : 1;
+    const size_t bytes = (size_t)(threads * per_thread + 1) * sizeof(double);
+    double *memory = aligned_alloc(ALIGN, (bytes + ALIGN - 1) / ALIGN * ALIGN);
+    if (!memory)
+        return 1;
+    const int64_t *off_z = offsets, *off_x = offsets + items, *off_sf2 = offsets + 2 * items,
+                  *off_omega = offsets + 3 * items, *off_phase = offsets + 4 * items, *off_w = offsets + 5 * items,
+                  *off_v = offsets + 6 * items;
+    const int64_t z_rs = row_strides[0], x_rs = row_strides[1], omega_rs = row_strides[2], w_rs = row_strides[3],
+                  v_rs = row_strides[4];
+#pragma omp parallel num_threads(threads)
+    {
+        double *mine = memory + omp_get_thread_num() * per_thread;
+        double *rows = mine + dim * (np + lp);
+        struct scratch sc = {mine, mine + dim * np, rows, rows + lp, rows + lp + np, rows + 2 * lp + np, -1, -1, -1};
+#pragma omp for schedule(static)
+        for (int64_t unit = 0; unit < units; ++unit) {
+            const int64_t b = unit / units_per_item, first = (unit % units_per_item) * ROWS_PER_UNIT;
+            const int64_t last = first + ROWS_PER_UNIT < num_rows ? first + ROWS_PER_UNIT : num_rows;
+            if (sc.x_off != off_x[b]) {
+                transpose(x + off_x[b], n, dim, x_rs, sc.x_t, np);
+                sc.x_off = off_x[b];
+            }
+            if (sc.omega_off != off_omega[b]) {
+                transpose(omega + off_omega[b], num_features, dim, omega_rs, sc.omega_t, lp);
+                sc.omega_off = off_omega[b];
+            }
+            if (sc.phase_off != off_phase[b]) {
+                for (int64_t l = 0; l < lp; ++l)
+                    sc.phase[l] = l < num_features ? phase[off_phase[b] + l] : 0.0;
+                sc.phase_off = off_phase[b];
+            }
+            const double log_sf2 = log(sf2[off_sf2[b]]);
+            for (int64_t p = first; p < last; ++p) {
+                const int64_t row = b * num_rows + p;
+                f[row] = row_value(z + off_z[b] + p * z_rs, v + off_v[b] + p * v_rs, w + off_w[b] + p * w_rs,
+                                   log_sf2, &sc, n, np, num_features, lp, dim,
+                                   grad ? grad + row * dim : NULL);
+            }
+        }
+    }
+    free(memory);
+    return 0;
+}

@@ -1,0 +1,224 @@
+"""The native pathwise-function values (`pathwise.c`) against the torch `_PathValues`: values, ∂f/∂z, rollouts."""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+import pytest
+import torch
+from torch import Tensor
+
+from qtl.gaussian import Gaussian
+from qtl.kernels.exp_sum import backend
+from qtl.kernels.native import pathwise as native_pathwise
+from qtl.kernels.native.pathwise import NativePathValues, check_against_torch, load_path_values
+from qtl.policies import RBFPolicy, SquashedPolicy
+from qtl.propagation import Particles
+from qtl.propagation.pathwise import MatheronPaths, _PathValues, path_values
+from tests.helpers import quadratic_reward
+
+DTYPE = torch.float64
+RTOL = 1e-12
+ROLLOUT_RTOL = 1e-10
+
+
+@pytest.fixture(scope="module")
+def library(built):
+    """The compiled library (built once for the module)."""
+    return load_path_values()
+
+
+def make_problem(
+    point_batch: tuple[int, ...], model_batch: tuple[int, ...], num_out: int, num_paths: int, num: int,
+    num_features: int, dim: int, seed: int, dtype: torch.dtype = DTYPE,
+) -> tuple[Tensor, Tensor, Tensor, Tensor, MatheronPaths]:  # fmt: skip
+    """Points z `*point_batch x E x P x D` and the model's data, |data|², α² and paths with `model_batch`."""
+    gen = torch.Generator().manual_seed(seed)
+    like = {"generator": gen, "dtype": dtype}
+    z = 0.8 * torch.randn(*point_batch, num_out, num_paths, dim, **like)
+    data = torch.randn(*model_batch, num_out, num, dim, **like)
+    signal_variance = 0.5 + torch.rand(*model_batch, num_out, **like)
+    paths = MatheronPaths(
+        frequencies=torch.randn(num_out, num_features, dim, **like),
+        phases=2 * math.pi * torch.rand(num_out, num_features, **like),
+        weights=torch.randn(*model_batch, num_out, num_paths, num_features, **like) / num_features**0.5,
+        update=torch.randn(*model_batch, num_out, num_paths, num, **like),
+    )
+    return z, data, data.square().sum(-1), signal_variance, paths
+
+
+def values_and_grad(fn, z: Tensor, probe_seed: int = 7) -> tuple[Tensor, Tensor]:
+    """f = fn(z) and the gradient of Σ probe · f for ``z`` (a random probe of f's shape)."""
+    z = z.detach().clone().requires_grad_()
+    value = fn(z)
+    probe = torch.randn(value.shape, generator=torch.Generator().manual_seed(probe_seed), dtype=value.dtype)
+    (grad,) = torch.autograd.grad((value * probe).sum(), z)
+    return value, grad
+
+
+def assert_rel_close(got: Tensor, want: Tensor, rtol: float) -> None:
+    """Same shape, and every entry within ``rtol`` of the largest reference magnitude."""
+    assert got.shape == want.shape
+    err, scale = (got - want).abs().max().item(), want.abs().max().item()
+    assert scale > 0 and err <= rtol * scale, f"max error {err:.3g} vs scale {scale:.3g}"
+
+
+# (point batch, model batch, E, P, n, L, D): odd n, n = 1, L = 1, P = 1, restarts over a shared model,
+# restarts against stacked models, a model batch wider than the points', and plain single items.
+SHAPES = [
+    ((), (), 3, 5, 7, 9, 4),
+    ((), (), 2, 4, 1, 6, 3),
+    ((), (), 2, 4, 6, 1, 3),
+    ((), (), 2, 1, 5, 5, 2),
+    ((), (), 1, 3, 1, 1, 1),
+    ((3,), (), 4, 40, 37, 33, 6),
+    ((2, 3), (3,), 2, 9, 11, 17, 5),
+    ((2, 1), (1, 3), 2, 6, 5, 8, 3),
+    ((), (3,), 2, 5, 13, 10, 4),
+    ((2,), (3, 1), 3, 4, 9, 7, 2),
+]
+
+
+@pytest.mark.parametrize(("point_batch", "model_batch", "num_out", "num_paths", "num", "num_features", "dim"), SHAPES)
+def test_native_equals_torch_values_and_gradients(
+    library, point_batch, model_batch, num_out, num_paths, num, num_features, dim
+):
+    z, data, data_sq, signal_variance, paths = make_problem(
+        point_batch, model_batch, num_out, num_paths, num, num_features, dim, seed=len(point_batch) + num
+    )
+    native = values_and_grad(
+        lambda z: native_pathwise.path_values(z, data, signal_variance, *paths, library=library), z
+    )
+    reference = values_and_grad(lambda z: _PathValues.apply(z, data, data_sq, signal_variance, paths), z)
+    for got, want in zip(native, reference, strict=True):
+        assert_rel_close(got, want, RTOL)
+
+
+def test_broadcast_and_strided_operands_are_read_in_place(library):
+    # z broadcast over the particles (one point, stride 0, as tests/propagation does) and non-contiguous
+    # model operands (a transposed view of the update, frequencies of a stacked draw): the same numbers.
+    _, data, data_sq, signal_variance, paths = make_problem((2,), (), 3, 6, 11, 7, 4, seed=3)
+    z = torch.randn(2, 3, 1, 4, generator=torch.Generator().manual_seed(4), dtype=DTYPE).expand(-1, -1, 6, -1)
+    update_t = paths.update.mT.contiguous().mT  # `E x P x n`, unit stride along P
+    frequencies = torch.stack([paths.frequencies, paths.frequencies])  # `2 x E x L x D`: one per z batch item
+    strided = MatheronPaths(frequencies, paths.phases, paths.weights, update_t)
+    native = values_and_grad(
+        lambda z: native_pathwise.path_values(z, data, signal_variance, *strided, library=library), z
+    )
+    reference = values_and_grad(lambda z: _PathValues.apply(z, data, data_sq, signal_variance, paths), z)
+    for got, want in zip(native, reference, strict=True):
+        assert_rel_close(got, want, RTOL)
+
+
+def test_thread_counts_give_identical_results(library):
+    z, data, _, signal_variance, paths = make_problem((3,), (), 2, 70, 19, 23, 3, seed=5)
+    before = torch.get_num_threads()
+    results = []
+    try:
+        for threads in (1, 2):
+            torch.set_num_threads(threads)
+            results.append(
+                values_and_grad(
+                    lambda z: native_pathwise.path_values(z, data, signal_variance, *paths, library=library), z
+                )
+            )
+    finally:
+        torch.set_num_threads(before)
+    for got, want in zip(*results, strict=True):
+        assert torch.equal(got, want)
+
+
+def test_gradcheck_native_function(library):
+    z, data, _, signal_variance, paths = make_problem((2,), (), 2, 3, 5, 4, 3, seed=6)
+    z = z.requires_grad_()
+    assert torch.autograd.gradcheck(
+        lambda z: NativePathValues.apply(z, data, signal_variance, *paths, library, True), (z,)
+    )
+
+
+def test_no_gradient_is_formed_without_grad_mode(library, monkeypatch):
+    z, data, _, signal_variance, paths = make_problem((), (), 2, 3, 5, 4, 3, seed=8)
+    asked = []
+    values = library.values
+    monkeypatch.setattr(library, "values", lambda *args: asked.append(args[-1]) or values(*args))
+    with torch.no_grad():
+        native_pathwise.path_values(z.requires_grad_(), data, signal_variance, *paths, library=library)
+    native_pathwise.path_values(z, data, signal_variance, *paths, library=library)
+    assert asked == [False, True]
+
+
+def test_path_values_dispatch_native_for_float64_and_torch_for_float32(library, monkeypatch):
+    calls = []
+    apply = NativePathValues.apply
+    monkeypatch.setattr(NativePathValues, "apply", lambda *args: calls.append(args[0].dtype) or apply(*args))
+    for dtype in (torch.float32, DTYPE):
+        z, data, data_sq, signal_variance, paths = make_problem((2,), (), 2, 5, 6, 7, 3, seed=9, dtype=dtype)
+        operands = (data, data_sq, signal_variance, paths)
+        with backend("native"):
+            got = values_and_grad(lambda z, operands=operands: path_values(z, *operands), z)
+        with backend("torch"):
+            want = values_and_grad(lambda z, operands=operands: path_values(z, *operands), z)
+        if dtype == torch.float32:  # the torch path: the very same operations
+            assert all(torch.equal(g, w) for g, w in zip(got, want, strict=True))
+        else:
+            for g, w in zip(got, want, strict=True):
+                assert_rel_close(g, w, RTOL)
+    assert calls == [DTYPE]  # float32 never reached the kernel; float64 did, once
+
+
+def test_build_check_passes_and_catches_a_wrong_kernel(library):
+    check_against_torch(library)
+
+    class Broken:
+        def values(self, *args):
+            value, grad = library.values(*args)
+            return value * (1 + 1e-9), grad
+
+    with pytest.raises(RuntimeError, match="disagrees"):
+        check_against_torch(Broken())  # type: ignore[arg-type]
+
+
+def rollout_value_and_grads(particles: Particles, policy: torch.nn.Module, start: Gaussian, horizon: int):
+    """V (per batch item) and ∂(Σ V)/∂ψ for every policy parameter."""
+    value = particles.rollout(start, horizon).value
+    return value.detach(), torch.autograd.grad(value.sum(), tuple(policy.parameters()))
+
+
+@pytest.mark.parametrize("stacked", [False, True])
+def test_particle_rollout_equal_between_backends(library, gp_factory, monkeypatch, stacked):
+    # A whole pathwise rollout (angles, squashed RBF policy, noise) on the native and the torch path:
+    # the same V and ∂V/∂ψ. Stacked: 2 restarts x 2 stacked models broadcast against each other.
+    gps = [gp_factory(40, 3, 1, (1,), seed=s) for s in (22, 23)]
+    gen = torch.Generator().manual_seed(23)
+    policy = SquashedPolicy(
+        RBFPolicy(4, 1, 8, targets=torch.randn(8, 1, generator=gen, dtype=DTYPE), generator=gen), 2.0
+    )
+    model = [g.posterior_cache() for g in gps] if stacked else gps[0]
+    particles = Particles(
+        model,
+        policy,
+        quadratic_reward(3, (1,)),
+        angle_dims=(1,),
+        sampling="pathwise",
+        num_particles=24,
+        num_features=50,
+        seed=3,
+    )
+    mean = torch.tensor([0.1, 2.5, -0.3], dtype=DTYPE)
+    if stacked:
+        mean = mean + 0.2 * torch.randn(2, 1, 3, generator=gen, dtype=DTYPE)
+    start = Gaussian(mean, 0.05 * torch.eye(3, dtype=DTYPE).expand(*mean.shape[:-1], 3, 3))
+    calls = []
+    apply = NativePathValues.apply
+    monkeypatch.setattr(NativePathValues, "apply", lambda *args: calls.append(1) or apply(*args))
+    results = {}
+    for name in ("native", "torch"):
+        with backend(name):
+            results[name] = rollout_value_and_grads(particles, policy, start, 6)
+    assert len(calls) == 6  # the native backend took the kernel at every step, the torch backend never
+    (v_native, g_native), (v_torch, g_torch) = results["native"], results["torch"]
+    assert v_native.shape == ((2, 2) if stacked else ())
+    assert_rel_close(v_native, v_torch, ROLLOUT_RTOL)
+    for got, want in itertools.zip_longest(g_native, g_torch):
+        assert_rel_close(got, want, ROLLOUT_RTOL)
