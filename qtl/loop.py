@@ -125,12 +125,17 @@ def run(cfg: DictConfig, output_dir: Path, *, resume: bool = False) -> RunResult
                                              generator=torch_generator(cfg.seed, episode, SEARCH_STREAM),
                                              tick=functools.partial(evals.update, 1))
                     search_s = time.perf_counter() - tic
+                    predicted = found.value
+                    if getattr(propagator, "search_reward", parts.reward) is not parts.reward:
+                        # a wider search reward (propagation.reward_width_scale): predict under the task's own
+                        with torch.no_grad():
+                            predicted = float(propagator.rollout(start, task.horizon).value)
 
                     # -- Lines 10-11: apply π(ψ) on the real system to obtain more tuples. ---------
                     real = run_episode(env, task, parts.actor(policy), derive_seed(cfg.seed, episode, ENV_STREAM))
                     row.update(
                         kind="policy",
-                        predicted_return=found.value,
+                        predicted_return=predicted,
                         model_smse=one_step_smse(model, real, features, parts.dtype),
                         model_log_evidence=log_evidence(model),
                         policy_evaluations=found.evaluations,

@@ -125,7 +125,8 @@ class Particles:
     the module docstring). ``sampling``: ``marginal`` (a fresh GP draw every step) or ``pathwise``
     (one function per particle for the rollout; see the module docstring), with ``num_features``
     random Fourier features L per output. ``reward_width_scale``: the search scores the task's reward
-    with its width × this (MC-PILCO's wider cost; 1: the task's own). ``seed``: of the base noise.
+    with its width × this (MC-PILCO's wider cost; 1: the task's own) in :meth:`expected_return`;
+    :meth:`rollout` (predictions, figures) scores the task's reward. ``seed``: of the base noise.
     ``dtype``: of the propagation (default: the cache's); the policy must share it.
     """
 
@@ -178,7 +179,8 @@ class Particles:
         data, self.features, self.dtype = propagation_inputs(model, policy, reward, angle_dims, dtype)
         self.state_dim = self.features.state_dim
         self.policy = policy
-        self.reward = reward if reward_width_scale == 1.0 else reward.widened(reward_width_scale)
+        self.reward = reward  # the task's: predictions and figures
+        self.search_reward = reward if reward_width_scale == 1.0 else reward.widened(reward_width_scale)
         self.num_particles = int(num_particles)
         self.resample_every = int(resample_every)
         self.include_noise = include_noise
@@ -299,19 +301,22 @@ class Particles:
             predictive = Gaussian(torch.stack(means, dim=-2), torch.diag_embed(torch.stack(variances, dim=-2)))
         return torch.stack(states, dim=-2), torch.stack(actions, dim=-2), predictive
 
-    def rollout(self, start: Gaussian, horizon: int, draw: int | None = None) -> Rollout:
+    def rollout(
+        self, start: Gaussian, horizon: int, draw: int | None = None, reward: ExpectedSaturatingReward | None = None
+    ) -> Rollout:
         """H steps from N(μ_0, Σ_0); V = mean over particles of Σ_{t=1..H} r(x_t) (Eq. 4).
 
         ``states`` and ``actions`` are the particles' per-step sample means and (unbiased)
         covariances. Uses the base noise of the latest evaluation unless ``draw`` is given, and
-        does not count as an evaluation. A non-finite V raises
-        :class:`~qtl.errors.NonFiniteObjective`.
+        does not count as an evaluation; r is the task's reward unless ``reward`` is given. A
+        non-finite V raises :class:`~qtl.errors.NonFiniteObjective`.
         """
+        reward = reward or self.reward
         states, actions, predictive = self._paths(start, horizon, draw)
         if self.expected_reward:
-            per_particle = self.reward.expected(predictive)  # ... x P x H, E[r(x_t) | x_{t−1}]
+            per_particle = reward.expected(predictive)  # ... x P x H, E[r(x_t) | x_{t−1}]
         else:
-            per_particle = self.reward(states[..., 1:, :])  # ... x P x H, successor states x_1..x_H
+            per_particle = reward(states[..., 1:, :])  # ... x P x H, successor states x_1..x_H
         value = per_particle.sum(-1).mean(-1)
         if not torch.isfinite(value).all():
             finite = torch.isfinite(states).all(-1).flatten(end_dim=-2).all(0)  # H+1
@@ -330,7 +335,7 @@ class Particles:
         )
 
     def expected_return(self, start: Gaussian, horizon: int) -> Tensor:
-        """V^π(x_0) ≈ (1/P) Σ_p Σ_{t=1..H} r(x_t^p) (Eq. 4): `...`, differentiable in ψ; counts one evaluation."""
+        """V^π(x_0) ≈ (1/P) Σ_p Σ_{t=1..H} r(x_t^p) (Eq. 4), r the search reward: `...`, differentiable in ψ."""
         draw = self.draw_index(evaluation=self.calls)
         self.calls += 1
-        return self.rollout(start, horizon, draw).value
+        return self.rollout(start, horizon, draw, self.search_reward).value
