@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import csv
+import logging
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -12,8 +16,11 @@ from qtl.build import DTYPES, Parts, build, resolve_device, transfer_plan
 from qtl.config import typed_groups
 from qtl.data import TransitionDataset
 from qtl.episodes import random_actor, run_episode
+from qtl.errors import UserError
+from qtl.loop import run
 from qtl.models import AutoFit, DynamicsGP, ExactFit, SparseDynamicsGP, SparseFit
-from qtl.policies import SquashedPolicy
+from qtl.plateau import PlateauRule
+from qtl.policies import RBFNetwork, SquashedPolicy
 from qtl.policy_search import AdamSearch, LBFGSSearch
 from qtl.propagation import MomentMatching, Particles
 from tests.helpers import TINY, tiny_config, train_config
@@ -145,3 +152,71 @@ def test_kernels_backend_is_chosen_in_build_and_a_bad_one_is_refused():
             build(tiny_config("kernels.backend=cuda"))
     finally:
         use_backend("torch")
+
+
+# -- recipe=mc_pilco and policy dropout -----------------------------------------------------------------
+
+# The loop's tiny budget with Adam (L-BFGS's max_iter does not apply).
+ADAM_TINY = [o for o in TINY if not o.startswith("optimizer.")]
+
+
+def test_recipe_mc_pilco_composes_the_particle_recipe():
+    cfg = train_config("recipe=mc_pilco")
+    prop, policy, opt = cfg.propagation, cfg.policy, cfg.optimizer
+    assert prop._target_ == "qtl.propagation.Particles"
+    assert (prop.sampling, prop.resample_every, prop.num_features, prop.reward_width_scale) == ("pathwise", 1, 256,
+                                                                                                4.0)
+    assert policy._target_ == "qtl.policies.rbf_network_policy" and policy.num_basis == 200
+    assert opt._target_ == "qtl.policy_search.AdamSearch"
+    assert (opt.steps, opt.lr, opt.keep, opt.dropout, opt.dropout_reduction, opt.lr_min, opt.batched, opt.restarts) \
+        == (2000, 0.01, "last", 0.25, 0.125, 0.0025, False, 1)
+    assert OmegaConf.to_container(opt.plateau) == {"ema": 0.99, "threshold": 0.08, "window": 200, "min_steps": 200}
+    assert cfg.task.env.id == train_config().task.env.id  # the task is untouched
+    assert train_config("recipe=mc_pilco", "optimizer.dropout=0.1").optimizer.dropout == 0.1  # overrides win
+    assert train_config().optimizer._target_ == "qtl.policy_search.LBFGSSearch"  # recipe: null by default
+
+
+def test_recipe_mc_pilco_builds_a_dropout_network_searched_by_the_schedule():
+    parts = build(train_config(*ADAM_TINY, "recipe=mc_pilco", "policy.num_basis=30"))
+    assert isinstance(parts.search, AdamSearch) and parts.search.plateau == PlateauRule(0.99, 0.08, 200, 200)
+    policy = parts.initial_policy()
+    assert isinstance(policy, SquashedPolicy) and isinstance(policy.policy, RBFNetwork)
+    centres = policy.policy.centres.detach()
+    assert centres.shape == (30, parts.task.feature_dim)
+    angle = centres[:, -2:]  # the cart-pole's (sin θ, cos θ): centres on the unit circle
+    torch.testing.assert_close(angle.square().sum(-1), torch.ones(30, dtype=torch.float64))
+    policy.set_dropout(0.25)  # the search can switch it on
+    assert policy.policy.dropout == 0.25
+
+
+@pytest.mark.parametrize(("overrides", "fix"), [
+    (["optimizer=adam", "policy=rbf_network"], "propagation=particles"),
+    (["optimizer=adam", "propagation=particles"], "policy=rbf_network"),
+    (["recipe=mc_pilco", "policy=rbf"], "policy=rbf_network"),
+])
+def test_dropout_without_particles_and_a_network_is_refused_in_one_line(overrides, fix):
+    with pytest.raises(UserError, match=r"optimizer\.dropout > 0 needs") as caught:
+        build(train_config(*ADAM_TINY, *overrides, "optimizer.dropout=0.25"))
+    message = str(caught.value)
+    assert "\n" not in message and fix in message and "optimizer.dropout=0" in message
+
+
+def test_the_mc_pilco_recipe_runs_the_loop_end_to_end(tmp_path, caplog):
+    """recipe=mc_pilco shrunk to seconds: one learned episode, its predicted return and evaluations recorded.
+
+    Plateaus (window 3 after 3 steps) can come at steps 5 and 9, not a third within 10 steps: 10 + 1 evaluations.
+    """
+    cfg = train_config(*ADAM_TINY, "recipe=mc_pilco", "episodes=1", "optimizer.steps=10", "optimizer.plateau.window=3",
+                       "optimizer.plateau.min_steps=3", "propagation.num_particles=20", "policy.num_basis=20",
+                       "propagation.num_features=32")
+    with caplog.at_level(logging.INFO, logger="qtl.policy_search"):
+        result = run(cfg, tmp_path)
+    with open(tmp_path / "metrics.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert [r["kind"] for r in rows] == ["random", "policy"]
+    learned = rows[1]
+    assert math.isfinite(float(learned["predicted_return"])) and float(learned["predicted_return"]) > 0
+    assert int(learned["policy_evaluations"]) == 11  # 10 steps and keep=last's evaluation
+    assert any("plateau after" in r.getMessage() for r in caplog.records)  # the schedule ran
+    assert len(result.returns) == 2 and all(math.isfinite(r) for r in result.returns)
+    assert (tmp_path / "checkpoints" / "episode_0001.pt").exists()

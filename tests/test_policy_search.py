@@ -6,6 +6,7 @@ Batched L-BFGS runs each restart's own L-BFGS in lockstep: per restart it is the
 from __future__ import annotations
 
 import functools
+import logging
 import math
 from collections.abc import Callable
 
@@ -16,7 +17,8 @@ from torch import nn
 
 from qtl.errors import NonFiniteObjective
 from qtl.gaussian import Gaussian, GaussianMap
-from qtl.policies import Policy, RBFPolicy, SquashedPolicy
+from qtl.plateau import PlateauRule
+from qtl.policies import Policy, RBFNetwork, RBFPolicy, SquashedPolicy
 from qtl.policy_search import AdamSearch, LBFGSSearch
 from qtl.propagation import MomentMatching
 from tests.helpers import quadratic_reward, train_config
@@ -327,3 +329,202 @@ def test_config_chooses_batched_restarts(option, target):
     assert instantiate(train_config(f"optimizer={option}").optimizer).batched is True
     search = instantiate(train_config(f"optimizer={option}", "optimizer.batched=false").optimizer)
     assert isinstance(search, target) and search.batched is False
+
+
+# -- MC-PILCO's schedule: dropout, plateaus, keep="last" --------------------------------------------------
+
+LR, LR_MIN = 0.01, 0.0025
+# The schedule's values at its three stages: Adam's learning rate and the policy dropout.
+STAGES = [(0.01, 0.25), (0.005, 0.125), (0.0025, 0.0)]
+
+
+def tiny_network() -> RBFNetwork:
+    """A 3-basis RBF network on 2-D features, one action: a policy that can drop its basis functions."""
+    gen = torch.Generator().manual_seed(0)
+    return RBFNetwork(torch.randn(3, 2, generator=gen, dtype=torch.float64),
+                      torch.randn(3, 1, generator=gen, dtype=torch.float64), torch.ones(1, 2, dtype=torch.float64))
+
+
+class FlatObjective:
+    """V = ``slope`` · Σ w + ``scale`` · ε_call (a flat, noisy objective); records the policy's dropout and ψ per call.
+
+    ``fail_at``: the call (1-based) whose value is NaN.
+    """
+
+    def __init__(self, policy: RBFNetwork, slope: float = 0.1, scale: float = 1.0, fail_at: int | None = None) -> None:
+        self.policy, self.slope, self.fail_at = policy, slope, fail_at
+        self.noise = scale * torch.randn(5000, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+        self.dropouts: list[float] = []
+        self.weights: list[torch.Tensor] = []
+        self.values: list[float] = []
+        self.grad_enabled: list[bool] = []
+
+    def __call__(self) -> torch.Tensor:
+        call = len(self.values)
+        self.dropouts.append(self.policy.dropout)
+        self.weights.append(self.policy.weights.detach().clone())
+        self.grad_enabled.append(torch.is_grad_enabled())
+        value = self.slope * self.policy.weights.sum() + self.noise[call]
+        if self.fail_at is not None and call + 1 == self.fail_at:
+            value = value * math.nan
+        self.values.append(float(value.detach()))
+        return value
+
+
+def scheduled_search(**kwargs) -> AdamSearch:
+    """MC-PILCO's schedule (lr 0.01 → 0.005 → 0.0025, dropout 0.25 → 0.125 → 0) with a short plateau rule."""
+    settings = {"steps": 1000, "lr": LR, "keep": "last", "dropout": 0.25, "dropout_reduction": 0.125,
+                "plateau": PlateauRule(ema=0.95, threshold=0.08, window=20, min_steps=20), "lr_reduction": 0.5,
+                "lr_min": LR_MIN, **kwargs}
+    return AdamSearch(**settings)
+
+
+def test_a_flat_noisy_objective_walks_the_schedule_and_stops_early(caplog):
+    """Each plateau halves the learning rate and lowers the dropout; a plateau at lr_min stops the search."""
+    policy = tiny_network()
+    objective = FlatObjective(policy)
+    with caplog.at_level(logging.INFO, logger="qtl.policy_search"):
+        result = scheduled_search()(policy, objective, generator=torch.Generator().manual_seed(0))
+    calls = len(objective.values)
+    assert result.evaluations == calls < 1000  # stopped early (the last call: keep="last"'s evaluation)
+    # A constant gradient makes each Adam step move every weight by its learning rate (to 1e-5 relative).
+    steps = [float((b - a)[0, 0]) for a, b in zip(objective.weights[:-1], objective.weights[1:], strict=True)]
+    stages = []
+    for lr, dropout in zip(steps, objective.dropouts[:-1], strict=True):  # the dropout a step's evaluation saw
+        stage = next(s for s in STAGES if s[1] == dropout)
+        assert lr == pytest.approx(stage[0], rel=1e-4), (lr, dropout)
+        if not stages or stages[-1] != stage:
+            stages.append(stage)
+    assert stages == STAGES  # every stage, in order
+    assert objective.dropouts[-1] == 0.0 and not objective.grad_enabled[-1]  # the final value: no dropout, no grad
+    assert policy.dropout == 0.0
+    messages = [r.getMessage() for r in caplog.records]
+    assert any("plateau at lr 0.0025" in m and "stopped" in m for m in messages)
+    assert sum("plateau after" in m for m in messages) == 2
+
+
+def test_a_constant_objective_stops_after_three_plateaus_exactly():
+    """ΔV = 0: plateaus at monitor steps 6, 12, 18 (window 5, min_steps 5): evaluations 7, 13, 19; then one more."""
+    policy = tiny_network()
+    dropouts = []
+
+    def objective() -> torch.Tensor:
+        dropouts.append(policy.dropout)
+        return 0.0 * policy.weights.sum() + 1.0
+
+    result = scheduled_search(plateau={"ema": 0.9, "threshold": 0.08, "window": 5, "min_steps": 5})(policy, objective)
+    assert result.evaluations == len(dropouts) == 20 and result.value == 1.0
+    assert dropouts == [0.25] * 7 + [0.125] * 6 + [0.0] * 7
+    assert result.run_evaluations == [20]
+
+
+def test_dropout_is_reset_when_the_objective_fails_midway():
+    policy = tiny_network()
+    objective = FlatObjective(policy, fail_at=5)
+    result = scheduled_search()(policy, objective)
+    assert objective.dropouts == [0.25] * 5 and policy.dropout == 0.0
+    assert result.evaluations == 5 and result.value == max(objective.values[:4])  # the best finite ψ is kept
+    assert torch.equal(policy.weights.detach(), objective.weights[objective.values.index(result.value)])
+
+
+def test_without_a_plateau_rule_dropout_stays_for_all_steps_and_is_reset():
+    policy = tiny_network()
+    objective = FlatObjective(policy)
+    result = AdamSearch(steps=12, lr=LR, dropout=0.3)(policy, objective)
+    assert objective.dropouts == [0.3] * 12 and policy.dropout == 0.0 and result.evaluations == 12
+
+
+class SpikedBowl:
+    """``bowl`` with +5 at one call (a lucky noisy value): what keep="best" keeps and keep="last" does not."""
+
+    def __init__(self, point: Point, spike_at: int = 3) -> None:
+        self.point, self.spike_at = point, spike_at
+        self.points: list[torch.Tensor] = []
+        self.values: list[float] = []
+
+    def __call__(self) -> torch.Tensor:
+        self.points.append(self.point.x.detach().clone())
+        value = bowl(self.point) + (5.0 if len(self.points) == self.spike_at else 0.0)
+        self.values.append(float(value.detach()))
+        return value
+
+
+def test_keep_last_leaves_the_final_psi_valued_afresh():
+    point = Point([0.0, 0.0])
+    objective = SpikedBowl(point)
+    result = AdamSearch(steps=50, lr=0.05, keep="last")(point, objective)
+    assert result.evaluations == len(objective.values) == 51  # every step, and one more at the final ψ
+    assert torch.equal(point.x.detach(), objective.points[-1])  # the final ψ ...
+    assert not torch.equal(objective.points[-1], objective.points[-2])  # ... after the last step
+    assert result.value == objective.values[-1] == pytest.approx(float(bowl(point).detach()))  # ... its fresh value
+    assert result.value < max(objective.values) and result.run_values == [result.value]
+
+
+def test_keep_best_leaves_the_best_value_seen():
+    point = Point([0.0, 0.0])
+    objective = SpikedBowl(point)
+    result = AdamSearch(steps=50, lr=0.05)(point, objective)
+    assert result.evaluations == len(objective.values) == 50
+    assert result.value == max(objective.values) == objective.values[2]  # the spike
+    assert torch.equal(point.x.detach(), objective.points[2])
+
+
+def test_keep_last_with_sequential_restarts_keeps_the_best_final_value():
+    point = Point([0.0, 0.0])
+    objective = SpikedBowl(point, spike_at=2)
+    result = AdamSearch(steps=20, lr=0.05, restarts=2, perturbation=0.5, keep="last", batched=False)(
+        point, objective, generator=torch.Generator().manual_seed(0))
+    finals = [objective.values[20], objective.values[41]]  # each run's extra evaluation
+    assert result.run_values == finals and result.value == max(finals) and result.evaluations == 42
+    assert torch.equal(point.x.detach(), objective.points[20 if finals[0] >= finals[1] else 41])
+
+
+def test_a_dropout_search_is_reproducible_from_its_generator():
+    """The masks come from the search's generator: the same seed, the same ψ; another seed, another ψ."""
+    features = torch.randn(30, 2, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
+    target = features[:, :1].sin()
+
+    def search(seed: int) -> torch.Tensor:
+        policy = tiny_network()
+        AdamSearch(steps=15, lr=0.05, dropout=0.25, keep="last")(
+            policy, lambda: -(policy(features) - target).square().mean(), generator=torch.Generator().manual_seed(seed))
+        return torch.cat([p.detach().flatten() for p in policy.parameters()])
+
+    first = search(0)
+    assert torch.equal(first, search(0))
+    assert not torch.equal(first, search(1))
+
+
+def test_scheduled_settings_refuse_batched_restarts():
+    for settings in ({"dropout": 0.25}, {"keep": "last"}, {"plateau": PlateauRule()}):
+        with pytest.raises(ValueError, match="restarts one after the other"):
+            AdamSearch(restarts=2, batched=True, **settings)
+        assert AdamSearch(restarts=1, batched=True, **settings).batched is False  # one restart: run sequentially
+        assert AdamSearch(restarts=2, batched=False, **settings).restarts == 2
+
+
+@pytest.mark.parametrize(("settings", "message"), [
+    ({"keep": "first"}, "keep must be one of best, last"),
+    ({"dropout": 1.0}, r"dropout must be in \[0, 1\)"),
+    ({"dropout": -0.1}, r"dropout must be in \[0, 1\)"),
+    ({"dropout_reduction": -0.1}, "dropout_reduction >= 0"),
+    ({"lr_min": 0.02}, r"lr_min in \[0, lr\]"),
+    ({"lr_min": -1e-3}, r"lr_min in \[0, lr\]"),
+    ({"lr_reduction": 0.0}, r"lr_reduction must be in \(0, 1\]"),
+    ({"lr_reduction": 1.5}, r"lr_reduction must be in \(0, 1\]"),
+])
+def test_bad_schedule_settings_are_named(settings, message):
+    with pytest.raises(ValueError, match=message):
+        AdamSearch(lr=0.01, **settings)
+
+
+def test_a_plateau_rule_given_as_hydra_passes_it():
+    """``optimizer.plateau`` of recipe=mc_pilco reaches AdamSearch as a DictConfig and becomes a PlateauRule."""
+    search = instantiate(train_config("recipe=mc_pilco").optimizer)
+    assert isinstance(search, AdamSearch) and search.plateau == PlateauRule(0.99, 0.08, 200, 200)
+    assert (search.keep, search.dropout, search.lr, search.lr_min, search.batched) == ("last", 0.25, 0.01, 0.0025,
+                                                                                       False)
+    plain = AdamSearch(plateau={"ema": 0.9, "threshold": 0.05, "window": 3, "min_steps": 1})
+    assert plain.plateau == PlateauRule(0.9, 0.05, 3, 1)
+    with pytest.raises(TypeError):
+        AdamSearch(plateau={"windw": 3})

@@ -120,3 +120,30 @@ def test_rejects_bad_specs():
         ExpectedSaturatingReward(2, (), [0.0, 0.0], [[-1.0, 0.0], [0.0, 1.0]])
     with pytest.raises(ValueError):
         ExpectedSaturatingReward(2, (1,), [0.0, 0.0], [[1.0, 0.0], [0.0, 1.0]])
+
+
+@pytest.mark.parametrize("scale", [0.5, 2.0, 4.0])
+def test_widened_reward_is_the_reward_of_a_wider_spec(scale, cov_factory):
+    """widened(k): W / k², i.e. r(x)^(1/k²), and the same reward as the env spec with its width × k."""
+    reward = ExpectedSaturatingReward.from_spec(cartpole_spec())
+    wide = reward.widened(scale)
+    x = 2 * torch.randn(50, 4, generator=torch.Generator().manual_seed(6), dtype=DTYPE)
+    torch.testing.assert_close(wide(x), reward(x) ** (1 / scale**2), rtol=1e-12, atol=1e-300)
+    spec = ExpectedSaturatingReward.from_spec(cartpole_spec(width=COST_WIDTH * scale))
+    torch.testing.assert_close(wide(x), spec(x), rtol=1e-12, atol=0)
+    state = Gaussian(torch.tensor([0.1, 0.0, 2.8, 0.3], dtype=DTYPE), cov_factory(4, 0.3, torch.Generator()))
+    torch.testing.assert_close(wide.expected(state), spec.expected(state), rtol=1e-12, atol=0)
+    assert (wide.state_dim, wide.features.angle_dims) == (4, (2,)) and torch.equal(wide.target, reward.target)
+    far = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=DTYPE)  # hanging down, 1 m off: wider means more reward here
+    assert (wide(far) > reward(far)) == (scale > 1)
+
+
+def test_widening_leaves_the_reward_and_refuses_a_bad_scale():
+    reward = ExpectedSaturatingReward.from_spec(plain_spec())
+    weight = reward.weight.clone()
+    torch.testing.assert_close(reward.widened(3.0).weight, weight / 9)
+    torch.testing.assert_close(reward.widened(1.0).weight, weight, rtol=0, atol=0)
+    assert torch.equal(reward.weight, weight)
+    for scale in (0.0, -1.0, math.nan):
+        with pytest.raises(ValueError, match="width scale must be > 0"):
+            reward.widened(scale)

@@ -10,7 +10,7 @@ from hydra import compose, initialize_config_module
 from hydra.utils import instantiate
 
 from qtl.config import register_configs
-from qtl.errors import NonFiniteObjective
+from qtl.errors import NonFiniteObjective, UserError
 from qtl.features import AngleFeatures
 from qtl.gaussian import Gaussian
 from qtl.policies import LinearPolicy, RBFPolicy, SquashedPolicy
@@ -381,3 +381,44 @@ def test_gaussian_resampling_seeds_and_gradcheck(gp_factory):
     assert plain_noise.resampling is None and noise.resampling.shape == (4, 6, 2)
     assert torch.equal(plain_noise.start, noise.start) and torch.equal(plain_noise.steps, noise.steps)
     assert gradcheck_value_wrt_policy_and_start(policy, lambda s: resampled.rollout(s, 2).value, start)
+
+
+@pytest.mark.parametrize("scale", [0.5, 4.0])
+def test_reward_width_scale_scores_the_same_paths_with_the_widened_reward(gp_factory, scale):
+    """reward_width_scale = k: the same particles, each reward r(x)^(1/k²) (W / k²); k = 1 is the task's reward."""
+    gp, policy, reward = pendulum_parts(gp_factory)
+    start = Gaussian(torch.tensor([0.1, 2.5, -0.2], dtype=DTYPE), 0.05 * torch.eye(3, dtype=DTYPE))
+
+    def particles(**kwargs):
+        return Particles(gp, policy, reward, angle_dims=(1,), num_particles=30, seed=6, **kwargs)
+
+    plain, wide = particles(), particles(reward_width_scale=scale)
+    assert plain.reward is reward and torch.equal(wide.reward.weight, reward.weight / scale**2)
+    with torch.no_grad():
+        states, _ = plain.trajectories(start, 5)
+        assert torch.equal(wide.trajectories(start, 5)[0], states)  # the reward does not move the particles
+        value, wide_value = plain.expected_return(start, 5), wide.expected_return(start, 5)
+    torch.testing.assert_close(value, reward(states[:, 1:]).sum(-1).mean(), rtol=1e-12, atol=0)
+    predicted = (reward(states[:, 1:]) ** (1 / scale**2)).sum(-1).mean()
+    torch.testing.assert_close(wide_value, predicted, rtol=1e-12, atol=0)
+    assert (wide_value > value) == (scale > 1)  # a wider reward pays more away from the target, everywhere
+
+
+def test_reward_width_scale_reaches_the_expected_reward(gp_factory):
+    gp, policy, reward = pendulum_parts(gp_factory)
+    start = Gaussian(torch.tensor([0.1, 2.5, -0.2], dtype=DTYPE), 0.05 * torch.eye(3, dtype=DTYPE))
+    wide = Particles(gp, policy, reward, angle_dims=(1,), num_particles=20, expected_reward=True,
+                     reward_width_scale=2.0, seed=6)
+    with torch.no_grad():
+        _, _, predictive = wide._paths(start, 4, None)
+        want = reward.widened(2.0).expected(predictive).sum(-1).mean()
+        torch.testing.assert_close(wide.expected_return(start, 4), want, rtol=1e-12, atol=0)
+
+
+@pytest.mark.parametrize("scale", [0.0, -2.0, float("nan")])
+def test_a_bad_reward_width_scale_is_a_user_error(gp_factory, scale):
+    with pytest.raises(UserError, match=r"propagation\.reward_width_scale must be > 0"):
+        Particles.check_settings(reward_width_scale=scale)
+    gp, policy, reward = linear_parts(gp_factory)
+    with pytest.raises(UserError, match="reward_width_scale"):
+        Particles(gp, policy, reward, reward_width_scale=scale)
