@@ -64,7 +64,7 @@ def rbf_network_policy(
     features: AngleFeatures | None = None,
     centre_range: float = math.pi,
     weight_range: float = 0.5,
-    lengthscale: float = 1.0,
+    lengthscale: float = 1 / math.sqrt(2),
     generator: torch.Generator | None = None,
     dtype: torch.dtype = torch.float64,
 ) -> RBFNetwork:
@@ -73,7 +73,7 @@ def rbf_network_policy(
     Centres are the features of states drawn with every non-angle dimension uniform in
     ±``centre_range`` and every angle uniform in [−π, π) (``features``: the state-to-feature map;
     without it, every feature is uniform in ±``centre_range``); weights uniform in ±``weight_range``;
-    every length-scale ``lengthscale``. ``start_features`` is not needed here.
+    every length-scale ``lengthscale`` (MC-PILCO's 1 in its exp(−d²) form). ``start_features`` is not needed here.
     """
     if centre_range <= 0 or weight_range < 0 or lengthscale <= 0:
         raise ValueError(f"centre_range and lengthscale must be > 0 and weight_range >= 0, got "

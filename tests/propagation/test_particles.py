@@ -385,7 +385,7 @@ def test_gaussian_resampling_seeds_and_gradcheck(gp_factory):
 
 @pytest.mark.parametrize("scale", [0.5, 4.0])
 def test_reward_width_scale_scores_the_same_paths_with_the_widened_reward(gp_factory, scale):
-    """reward_width_scale = k: the same particles, each reward r(x)^(1/k²) (W / k²); k = 1 is the task's reward."""
+    """reward_width_scale = k: the same particles, each search reward r(x)^(1/k²) (W / k²); k = 1: the task's."""
     gp, policy, reward = pendulum_parts(gp_factory)
     start = Gaussian(torch.tensor([0.1, 2.5, -0.2], dtype=DTYPE), 0.05 * torch.eye(3, dtype=DTYPE))
 
@@ -393,7 +393,8 @@ def test_reward_width_scale_scores_the_same_paths_with_the_widened_reward(gp_fac
         return Particles(gp, policy, reward, angle_dims=(1,), num_particles=30, seed=6, **kwargs)
 
     plain, wide = particles(), particles(reward_width_scale=scale)
-    assert plain.reward is reward and torch.equal(wide.reward.weight, reward.weight / scale**2)
+    assert plain.reward is reward and plain.search_reward is reward
+    assert wide.reward is reward and torch.equal(wide.search_reward.weight, reward.weight / scale**2)
     with torch.no_grad():
         states, _ = plain.trajectories(start, 5)
         assert torch.equal(wide.trajectories(start, 5)[0], states)  # the reward does not move the particles
@@ -402,6 +403,9 @@ def test_reward_width_scale_scores_the_same_paths_with_the_widened_reward(gp_fac
     predicted = (reward(states[:, 1:]) ** (1 / scale**2)).sum(-1).mean()
     torch.testing.assert_close(wide_value, predicted, rtol=1e-12, atol=0)
     assert (wide_value > value) == (scale > 1)  # a wider reward pays more away from the target, everywhere
+    # Predictions (rollout, figures) score the task's reward; only the search's objective is widened.
+    with torch.no_grad():
+        torch.testing.assert_close(wide.rollout(start, 5).value, value, rtol=1e-12, atol=0)
 
 
 def test_reward_width_scale_reaches_the_expected_reward(gp_factory):
