@@ -18,6 +18,24 @@ INIT_TARGET_STD = 0.1
 INIT_LENGTHSCALE = 1.0
 
 
+def se_activations(policy: Policy, x: Tensor, centres: Tensor) -> Tensor:
+    """exp(−½ ‖(y − c_s)/ℓ‖²) `... x F x N` for features ``x`` `... x D` (batched ψ: `R x S x D`).
+
+    ``centres`` c `(R x) N x D`; the length-scales are ``policy.log_lengthscales`` `(R x) F x D`.
+    ‖(y − c)/ℓ‖² is expanded, so that memory is `... x F x N` rather than `... x F x N x D`; with one
+    action the cross term is one matrix product (per restart), not a matrix-vector product per point.
+    """
+    inv_ls = policy.log_lengthscales.neg().exp()  # (R x) F x D
+    scaled_c = centres[..., None, :, :] * inv_ls[..., :, None, :]  # (R x) F x N x D
+    scaled_x = x[..., None, :] * policy.per_point(inv_ls)  # ... x F x D
+    if policy.output_dim == 1 and x.dim() >= 2:
+        cross = (scaled_x[..., 0, :] @ scaled_c[..., 0, :, :].mT)[..., None, :]  # ... x 1 x N
+    else:
+        cross = (scaled_x[..., :, None, :] @ policy.per_point(scaled_c).mT).squeeze(-2)  # ... x F x N
+    sq_dist = scaled_x.square().sum(-1)[..., None] + policy.per_point(scaled_c.square().sum(-1)) - 2 * cross
+    return torch.exp(-0.5 * sq_dist.clamp_min(0.0))
+
+
 class RBFPolicy(Policy):
     """π̃(y) = Σ_s β_s k_π(x_s, y) (Eq. 5) with β_π = (K_π + σ_π²I)⁻¹ y_π per action dimension.
 
@@ -81,14 +99,7 @@ class RBFPolicy(Policy):
 
     def forward(self, x: Tensor) -> Tensor:
         """Actions `... x F` for features `... x D` (Eq. 5); batched ψ: `R x S x F` for `R x S x D`."""
-        inv_ls = self.log_lengthscales.neg().exp()  # (R x) F x D
-        scaled_s = self.per_point(self.support_points[..., None, :, :] * inv_ls[..., :, None, :])  # (R x 1 x) F x N x D
-        inv_ls = self.per_point(inv_ls)
-        scaled_x = x[..., None, :] * inv_ls  # ... x F x D
-        # ‖(x − x_s)/ℓ‖² expanded, so that memory is `... x F x N` rather than `... x F x N x D`.
-        cross = (scaled_x[..., :, None, :] @ scaled_s.mT).squeeze(-2)  # ... x F x N
-        sq_dist = scaled_x.square().sum(-1)[..., None] + scaled_s.square().sum(-1) - 2 * cross
-        kern = POLICY_SIGNAL_VARIANCE * torch.exp(-0.5 * sq_dist.clamp_min(0.0))
+        kern = POLICY_SIGNAL_VARIANCE * se_activations(self, x, self.support_points)
         return (kern * self.per_point(self.weights())).sum(-1)
 
     def prepare(self) -> GaussianMap:

@@ -8,6 +8,7 @@ from torch import Tensor, nn
 from qtl.gaussian import GaussianMap
 from qtl.kernels import SEKernelMoments
 from qtl.policies.base import Policy
+from qtl.policies.rbf import se_activations
 
 
 class RBFNetwork(Policy):
@@ -51,15 +52,7 @@ class RBFNetwork(Policy):
 
     def activations(self, x: Tensor) -> Tensor:
         """exp(−½ ‖(y − c_s)/ℓ‖²) `... x F x N` for features `... x D` (batched ψ: `R x S x D`)."""
-        inv_ls = self.log_lengthscales.neg().exp()  # (R x) F x D
-        scaled_c = self.centres[..., None, :, :] * inv_ls[..., :, None, :]  # (R x) F x N x D
-        scaled_x = x[..., None, :] * self.per_point(inv_ls)  # ... x F x D
-        if self.output_dim == 1 and x.dim() >= 2:  # one GEMM (per restart), not a matrix-vector product per point
-            cross = (scaled_x[..., 0, :] @ scaled_c[..., 0, :, :].mT)[..., None, :]  # ... x 1 x N
-        else:
-            cross = (scaled_x[..., :, None, :] @ self.per_point(scaled_c).mT).squeeze(-2)  # ... x F x N
-        sq_dist = scaled_x.square().sum(-1)[..., None] + self.per_point(scaled_c.square().sum(-1)) - 2 * cross
-        return torch.exp(-0.5 * sq_dist.clamp_min(0.0))
+        return se_activations(self, x, self.centres)
 
     def forward(self, x: Tensor) -> Tensor:
         """Actions `... x F` for features `... x D`, basis dropout applied when set."""
