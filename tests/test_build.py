@@ -13,6 +13,7 @@ from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
 from qtl.build import DTYPES, Parts, build, resolve_device, transfer_plan
+from qtl.checkpoint import latest_checkpoint, load_checkpoint
 from qtl.config import typed_groups
 from qtl.data import TransitionDataset
 from qtl.episodes import random_actor, run_episode
@@ -220,3 +221,22 @@ def test_the_mc_pilco_recipe_runs_the_loop_end_to_end(tmp_path, caplog):
     assert any("plateau after" in r.getMessage() for r in caplog.records)  # the schedule ran
     assert len(result.returns) == 2 and all(math.isfinite(r) for r in result.returns)
     assert (tmp_path / "checkpoints" / "episode_0001.pt").exists()
+
+
+def test_the_mc_pilco_recipe_transfers_theta_and_psi_unchanged(tmp_path):
+    """QTL Bayesian from a recipe source: ψ_s (an RBF network) runs episode 0 of the 2.0 kg target, then θ follows."""
+    shrunk = [*ADAM_TINY, "recipe=mc_pilco", "episodes=1", "optimizer.steps=6", "optimizer.plateau=null",
+              "propagation.num_particles=20", "policy.num_basis=20", "propagation.num_features=32"]
+    source = tmp_path / "source"
+    run(train_config(*shrunk), source)
+    target = tmp_path / "target"
+    run(train_config(*shrunk, "approach=qtl_bayesian", f"transfer.source={source}", "task.env.pole_mass=2.0"), target)
+    with open(target / "metrics.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert [r["kind"] for r in rows] == ["source_policy", "policy"]
+    assert math.isfinite(float(rows[1]["compliance"])) and math.isfinite(float(rows[1]["predicted_return"]))
+    psi_s = load_checkpoint(latest_checkpoint(source))["policy"]
+    psi_0 = load_checkpoint(target / "checkpoints" / "episode_0000.pt")["policy"]
+    assert psi_s.keys() == psi_0.keys() and any("centres" in name for name in psi_s)
+    for name, value in psi_s.items():  # episode 0 ran ψ_s and changed nothing
+        assert torch.equal(psi_0[name], value), name
