@@ -19,6 +19,13 @@ Two ways to sample the GP (``sampling``):
   is the same along its path, the GP's own belief; a step costs O(n + L) per particle and output.
   With ``expected_reward`` the per-step predictive is N(x_{t−1} + f_p, diag σ_ε²) (or a point
   without noise): given the function, the noise is the step's only randomness.
+  ``path_dtype="float32"`` evaluates the drawn functions in float32 within a float64 rollout: the
+  functions (ω̃, b, the weights, and the update v, still solved in float64 and then cast) and the
+  scaled data are kept in float32, each step casts z̃ down, and f and ∂f/∂z̃ come back as float64.
+  This is safe because, once v is solved (the ill-conditioned part, (K + σ_ε²I)⁻¹), evaluating
+  f_p(z̃) = Σ_l W_pl cos(ω̃_lᵀz̃ + b_l) + Σ_i k_i v_pi is well conditioned: each term carries a
+  relative round-off of a few float32 ulp (~1e-7, times 1 + |ω̃ᵀz̃ + b|), far below the Monte Carlo
+  error of the function itself, whose kernel comes from L random features (~1/√L, 0.06 at L = 256).
 
 Variance control by common random numbers: the base noise, ε_0 `P x D` and ε_1..ε_H
 `H x P x E`, is a deterministic function of (``seed``, draw index). With ``resample_every = 0``
@@ -72,6 +79,8 @@ PATHWISE_STREAM = 2
 SAMPLING = ("marginal", "pathwise")
 # Random Fourier features L per output of a pathwise function (Monte Carlo error of its kernel ~ 1/√L).
 DEFAULT_NUM_FEATURES = 1024
+# The dtypes a pathwise function may be evaluated in (float64: the propagation's own dtype, no cast).
+PATH_DTYPES = {"float64": torch.float64, "float32": torch.float32}
 
 
 class BaseNoise(NamedTuple):
@@ -126,7 +135,9 @@ class Particles:
     (one function per particle for the rollout; see the module docstring), with ``num_features``
     random Fourier features L per output. ``reward_width_scale``: the search scores the task's reward
     with its width × this (MC-PILCO's wider cost; 1: the task's own) in :meth:`expected_return`;
-    :meth:`rollout` (predictions, figures) scores the task's reward. ``seed``: of the base noise.
+    :meth:`rollout` (predictions, figures) scores the task's reward. ``path_dtype``: ``float64``
+    (default) evaluates pathwise functions in the propagation's dtype, ``float32`` in float32 and
+    returns them in the propagation's (see the module docstring). ``seed``: of the base noise.
     ``dtype``: of the propagation (default: the cache's); the policy must share it.
     """
 
@@ -138,6 +149,7 @@ class Particles:
         sampling: str = "marginal",
         num_features: int = DEFAULT_NUM_FEATURES,
         reward_width_scale: float = 1.0,
+        path_dtype: str = "float64",
         **_: object,
     ) -> None:
         """The settings' ranges, checked before any work (``qtl.build`` calls it): a UserError naming what to fix."""
@@ -155,6 +167,8 @@ class Particles:
             raise UserError(
                 f"propagation.reward_width_scale must be > 0 (1: the task's reward), got {reward_width_scale}"
             )
+        if path_dtype not in PATH_DTYPES:
+            raise UserError(f"propagation.path_dtype must be one of {', '.join(PATH_DTYPES)}, got {path_dtype!r}")
 
     def __init__(
         self,
@@ -171,11 +185,13 @@ class Particles:
         sampling: str = "marginal",
         num_features: int = DEFAULT_NUM_FEATURES,
         reward_width_scale: float = 1.0,
+        path_dtype: str = "float64",
         seed: int = 0,
         dtype: torch.dtype | None = None,
     ) -> None:
         self.check_settings(num_particles=num_particles, resample_every=resample_every, seed=seed,
-                            sampling=sampling, num_features=num_features, reward_width_scale=reward_width_scale)
+                            sampling=sampling, num_features=num_features, reward_width_scale=reward_width_scale,
+                            path_dtype=path_dtype)
         data, self.features, self.dtype = propagation_inputs(model, policy, reward, angle_dims, dtype)
         self.state_dim = self.features.state_dim
         self.policy = policy
@@ -188,6 +204,7 @@ class Particles:
         self.gaussian_resampling = bool(gaussian_resampling)
         self.sampling = str(sampling)
         self.num_features = int(num_features)
+        self.path_dtype = str(path_dtype)
         self.seed = int(seed)
         self.calls = 0  # evaluations of expected_return so far: they set the draw index
         self._noise: tuple[tuple[int, int], BaseNoise] | None = None
@@ -203,6 +220,11 @@ class Particles:
         self._K_inv = data["K_inv"]
         self._signal_variance = data["signal_variance"]
         self._noise_variance = data["noise_variance"]  # ... x E
+        # What the pathwise functions are evaluated with: float32 copies with path_dtype=float32 (else these).
+        self._eval_dtype = torch.float32 if self.path_dtype == "float32" else self.dtype
+        self._path_data, self._path_data_sq, self._path_signal_variance = (
+            t.to(self._eval_dtype) for t in (self._data, self._data_sq, self._signal_variance)
+        )
 
     # -- common random numbers ------------------------------------------------------------------
 
@@ -233,7 +255,11 @@ class Particles:
         return self._noise[1]
 
     def functions(self, draw: int | None = None) -> MatheronPaths:
-        """The P pathwise functions per output of one draw (default: the latest); needs ``sampling="pathwise"``."""
+        """The P pathwise functions per output of one draw (default: the latest); needs ``sampling="pathwise"``.
+
+        Drawn and solved in the propagation's dtype, then kept in the evaluation's (float32 with
+        ``path_dtype="float32"``).
+        """
         if self.sampling != "pathwise":
             raise ValueError(f"functions() needs sampling='pathwise', this propagator samples {self.sampling!r}")
         draw = self.draw_index() if draw is None else draw
@@ -243,7 +269,7 @@ class Particles:
             features = draw_features(gen, num_outputs, input_dim, num_points, self.num_particles, self.num_features)
             paths = matheron_paths(features, self._data, self._beta, self._K_inv, self._signal_variance,
                                    self._noise_variance)
-            self._functions = (draw, paths)
+            self._functions = (draw, MatheronPaths(*(t.to(self._eval_dtype) for t in paths)))
         return self._functions[1]
 
     # -- propagation ----------------------------------------------------------------------------
@@ -282,7 +308,8 @@ class Particles:
                     var = var + self._noise_variance[..., None]
                 delta = mean + _safe_sqrt(var) * step_noise[t].mT  # Δ ~ N(m, v) reparameterised
             else:
-                mean = path_values(z, self._data, self._data_sq, self._signal_variance, functions)  # f_p: ... x E x P
+                mean = path_values(z.to(self._eval_dtype), self._path_data, self._path_data_sq,
+                                   self._path_signal_variance, functions).to(self.dtype)  # f_p: ... x E x P
                 var = torch.zeros_like(mean)
                 delta = mean
                 if self.include_noise:  # the observation noise, independent per step, on top of f_p
