@@ -220,6 +220,7 @@ class Particles:
         self._K_inv = data["K_inv"]
         self._signal_variance = data["signal_variance"]
         self._noise_variance = data["noise_variance"]  # ... x E
+        self._noise_std = self._noise_variance.sqrt()  # σ_ε: ... x E
         # What the pathwise functions are evaluated with: float32 copies with path_dtype=float32 (else these).
         self._eval_dtype = torch.float32 if self.path_dtype == "float32" else self.dtype
         self._path_data, self._path_data_sq, self._path_signal_variance = (
@@ -296,6 +297,11 @@ class Particles:
         x = start.mean[..., None, :] + start_noise @ matrix_root(start.cov).mT  # x_0 = μ_0 + L_0 ε_0
         x = x.expand(*batch, self.num_particles, self.state_dim)
         states, actions, means, variances = [x], [], [], []
+        # Pathwise: the step noise σ_ε ε_t of every step in one product, `H x ... x P x E` (none without noise).
+        noise_steps = None
+        if functions is not None and self.include_noise:
+            noise_steps = self._noise_std[..., None, :] * step_noise.view(
+                horizon, *(1,) * (self._noise_std.dim() - 1), *step_noise.shape[1:])
         for t in range(horizon):
             y = self.features(x)  # ... x P x (D + K), exact per particle
             u = self.policy(y)  # ... x P x F
@@ -307,25 +313,31 @@ class Particles:
                 if self.include_noise:
                     var = var + self._noise_variance[..., None]
                 delta = mean + _safe_sqrt(var) * step_noise[t].mT  # Δ ~ N(m, v) reparameterised
+                if self.expected_reward:
+                    means.append(x + mean.mT)
+                    variances.append(var.mT)
+                x = x + delta.mT
             else:
-                mean = path_values(z.to(self._eval_dtype), self._path_data, self._path_data_sq,
-                                   self._path_signal_variance, functions).to(self.dtype)  # f_p: ... x E x P
-                var = torch.zeros_like(mean)
-                delta = mean
-                if self.include_noise:  # the observation noise, independent per step, on top of f_p
-                    var = var + self._noise_variance[..., None]
-                    delta = mean + self._noise_variance.sqrt()[..., None] * step_noise[t].mT
-            if self.expected_reward:
-                means.append(x + mean.mT)
-                variances.append(var.mT)
-            x = x + delta.mT
+                step = path_values(z.to(self._eval_dtype), self._path_data, self._path_data_sq,
+                                   self._path_signal_variance, functions).to(self.dtype).mT  # f_p: ... x P x E
+                if self.expected_reward:
+                    means.append(x + step)
+                if noise_steps is not None:  # the observation noise, independent per step, on top of f_p
+                    step = step + noise_steps[t]
+                x = x + step
             if resampling_noise is not None:
                 x = _gaussian_resample(x, resampling_noise[t])
             states.append(x)
             actions.append(u)
         predictive = None
         if self.expected_reward:
-            predictive = Gaussian(torch.stack(means, dim=-2), torch.diag_embed(torch.stack(variances, dim=-2)))
+            mean = torch.stack(means, dim=-2)  # ... x P x H x D
+            if functions is None:
+                var = torch.stack(variances, dim=-2)
+            else:  # given its function a particle's step varies by the noise alone: σ_ε² (or 0) at every step
+                var = (self._noise_variance if self.include_noise else torch.zeros_like(self._noise_variance))
+                var = var[..., None, None, :].expand(mean.shape)
+            predictive = Gaussian(mean, torch.diag_embed(var))
         return torch.stack(states, dim=-2), torch.stack(actions, dim=-2), predictive
 
     def rollout(
