@@ -304,3 +304,25 @@ def test_particle_rollout_equal_between_backends(library, gp_factory, monkeypatc
     assert_rel_close(v_native, v_torch, ROLLOUT_RTOL)
     for got, want in itertools.zip_longest(g_native, g_torch):
         assert_rel_close(got, want, ROLLOUT_RTOL)
+
+
+@pytest.mark.parametrize("reach", [1.0, 30.0, 300.0, 3000.0])
+def test_float32_sin_and_cos_hold_for_large_angles(library, reach):
+    # With ∂f/∂z̃ the float32 kernel takes sin and cos from one argument reduction (pathwise.c, sincos_f32):
+    # against float64 it is as good as float32 allows, whose angle a = ω̃ᵀz̃ + b itself carries ≤ (D + 2) u |a|
+    # (u = 2⁻²⁴) per term, also for |a| in the thousands (observed: ~2e-9 |a| of the term scale, the terms'
+    # errors partly cancelling). Data far away (k ≈ 0): f and ∂f/∂z̃ are the random-feature part alone.
+    z, data, _, signal_variance, paths = make_problem((), (), 2, 64, 5, 200, 3, seed=11)
+    z = z * reach
+    data = data + 1e3
+    single = (data.float(), signal_variance.float(), MatheronPaths(*(t.float() for t in paths)))
+    truth = values_and_grad(lambda z: native_pathwise.path_values(z, data, signal_variance, *paths, library=library), z)
+    got = values_and_grad(
+        lambda z: native_pathwise.path_values(z, single[0], single[1], *single[2], library=library), z.float()
+    )
+    angle = (z @ paths.frequencies.mT + paths.phases[..., None, :]).abs().amax()  # the largest |a|
+    assert angle > 0.5 * reach
+    value_scale, grad_scale = term_scales(z, data, signal_variance, paths)
+    grad_scale = grad_scale * probe_for(truth[0]).abs()[..., None]
+    for g, w, scale in zip(got, truth, (value_scale, grad_scale), strict=True):
+        assert_within_scale(g, w, scale * (1 + angle), (3 + 2) * 2.0**-24)

@@ -22,7 +22,8 @@
  * its item's data to `D x n` and frequencies to `D x L` (skipped when its previous unit had the same
  * ones), so that every inner loop of a row runs over i or l with unit stride, a vector at a time:
  *   1. |z̃ − x̃_i|² for all i, one pass per input dimension; exp; times v_pi, summed;
- *   2. a_l for all l, one pass per input dimension; cos; times W_pl, summed (and with grad: sin, times W_pl);
+ *   2. a_l for all l, one pass per input dimension; cos; times W_pl, summed (and with grad: sin, times W_pl;
+ *      in float, with grad, sin and cos come from one argument reduction, sincos_f32 below);
  *   3. with grad: Σ_i k_i v_pi x̃_i and Σ_l W_pl sin(a_l) ω̃_l, one pass over i and one over l per dimension.
  * The exp, cos and sin loops run over the lengths padded to PAD (the tiles' padding is 0), so they
  * have no scalar tails.
@@ -76,6 +77,25 @@ extern float sinf(float);
 #pragma omp declare simd notinbranch
 extern float cosf(float);
 
+/* sin a and cos a (float) with one argument reduction for both: q = a·2/π rounded to the nearest integer
+ * (the 1.5·2²³ shift), r = a − q π/2 with π/2 in three parts (Cody–Waite; exact products for |q| < 2¹²), then
+ * the minimax polynomials of sin and cos on [−π/4, π/4] (Cephes' sinf/cosf coefficients, ~1 ulp there) and
+ * the quadrant q mod 4. Branch-free, so that gcc vectorises a loop of it; a few ulp for |a| ≲ 10⁴. */
+static inline void sincos_f32(float a, float *s, float *c)
+{
+    const float shift = 12582912.0f; /* 1.5 · 2²³: adding and subtracting it rounds to an integer */
+    const float k = (a * 0.636619772367581343f + shift) - shift;
+    const float r = ((a - k * 1.5703125f) - k * 4.837512969970703125e-4f) - k * 7.54978995489188216e-8f;
+    const float r2 = r * r;
+    const float sin_r = r + r * r2 * (-1.6666654611e-1f + r2 * (8.3321608736e-3f + r2 * -1.9515295891e-4f));
+    const float cos_r = 1.0f - 0.5f * r2 +
+                        r2 * r2 * (4.166664568298827e-2f + r2 * (-1.388731625493765e-3f + r2 * 2.443315711809948e-5f));
+    const int32_t q = (int32_t)k;
+    const float sin_a = (q & 1) ? cos_r : sin_r, cos_a = (q & 1) ? sin_r : cos_r;
+    *s = (q & 2) ? -sin_a : sin_a;
+    *c = ((q + 1) & 2) ? -cos_a : cos_a;
+}
+
 #define CAT_(a, b) a##_##b
 #define CAT(a, b) CAT_(a, b)
 #define F(name) CAT(name, PRECISION) /* a body's static names, one set per precision */
@@ -87,7 +107,9 @@ extern float cosf(float);
 #define SIN sin
 #define COS cos
 #define ENTRY qtl_path_values
+#define QTL_PATHWISE_SINCOS 0
 #include __FILE__
+#undef QTL_PATHWISE_SINCOS
 #undef real
 #undef PRECISION
 #undef EXP
@@ -101,6 +123,7 @@ extern float cosf(float);
 #define SIN sinf
 #define COS cosf
 #define ENTRY qtl_path_values_f32
+#define QTL_PATHWISE_SINCOS 1
 #include __FILE__
 
 #else /* QTL_PATHWISE_BODY: the kernel in one precision (real, EXP, SIN, COS, ENTRY set by the includer) */
@@ -232,6 +255,21 @@ static real F(row_value)(const real *restrict zr, const real *restrict vr, const
         kv[i] = 0.0;
     /* 2. the prior part: a_l, then Σ_l W_pl cos(a_l) (and with g, W_pl sin(a_l), its padding 0) */
     F(tile_pass)(omega_t, zr, sc->phase, dim, lp, 0, angle);
+#if QTL_PATHWISE_SINCOS
+    if (g) { /* float: sin and cos from one argument reduction (sin into angle, cos into trig) */
+#pragma omp simd aligned(angle, trig : ALIGN)
+        for (int64_t l = 0; l < lp; ++l)
+            sincos_f32(angle[l], &angle[l], &trig[l]);
+    } else {
+#pragma omp simd aligned(angle, trig : ALIGN)
+        for (int64_t l = 0; l < lp; ++l)
+            trig[l] = COS(angle[l]);
+    }
+    const real prior = F(mul_sum)(trig, wr, num_features, NULL);
+    if (!g)
+        return fitted + prior;
+    F(mul_sum)(angle, wr, num_features, trig);
+#else
 #pragma omp simd aligned(angle, trig : ALIGN)
     for (int64_t l = 0; l < lp; ++l)
         trig[l] = COS(angle[l]);
@@ -242,6 +280,7 @@ static real F(row_value)(const real *restrict zr, const real *restrict vr, const
     for (int64_t l = 0; l < lp; ++l)
         trig[l] = SIN(angle[l]);
     F(mul_sum)(trig, wr, num_features, trig);
+#endif
     for (int64_t l = num_features; l < lp; ++l)
         trig[l] = 0.0;
     /* 3. ∂f/∂z̃_d = Σ_i k_i v_pi x̃_id − z̃_d Σ_i k_i v_pi − Σ_l W_pl sin(a_l) ω̃_ld */
