@@ -26,6 +26,9 @@ Two ways to sample the GP (``sampling``):
   f_p(z̃) = Σ_l W_pl cos(ω̃_lᵀz̃ + b_l) + Σ_i k_i v_pi is well conditioned: each term carries a
   relative round-off of a few float32 ulp (~1e-7, times 1 + |ω̃ᵀz̃ + b|), far below the Monte Carlo
   error of the function itself, whose kernel comes from L random features (~1/√L, 0.06 at L = 256).
+  A long rollout amplifies any per-step perturbation (a swing-up is chaotic): on the 50-step cart-pole
+  (n = 250, P = 400) float32 moves ∂V/∂ψ by ~1e-2 relative (the float64 torch twin by ~3e-11), still
+  ~10× below the spread between two draws of the functions (~0.14).
 
 Variance control by common random numbers: the base noise, ε_0 `P x D` and ε_1..ε_H
 `H x P x E`, is a deterministic function of (``seed``, draw index). With ``resample_every = 0``
