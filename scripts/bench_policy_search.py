@@ -88,12 +88,17 @@ def variant_name(variant: tuple[str, bool, str]) -> str:
     backend, batched, moments = variant
     return f"{backend}/{RESTART_MODES[batched]}/{moments}"
 # The loop's settings per propagator: Hydra overrides of the default `train` config.
+# The particle rows' shared settings: the mc_pilco recipe's propagation (fresh noise every evaluation, the reward
+# of the drawn states), so that pathwise against marginal compares like with like.
+PARTICLE_SEARCH = ["propagation=particles", "propagation.resample_every=1", "propagation.expected_reward=false",
+                   "optimizer=adam", "optimizer.steps=500"]
 PROPAGATORS: dict[str, list[str]] = {
     "moment_matching": ["propagation=moment_matching", "optimizer=lbfgs"],
-    "particles": ["propagation=particles", "optimizer=adam", "optimizer.steps=500"],
-    # Pathwise GP samples (issue 19), with the random features of the mc_pilco recipe; marginal is the row above.
-    "particles_pathwise": ["propagation=particles", "propagation.sampling=pathwise", "propagation.num_features=256",
-                           "optimizer=adam", "optimizer.steps=500"],
+    "particles": PARTICLE_SEARCH,
+    # Pathwise GP samples (issue 19), with the random features and the float32 path values of the mc_pilco
+    # recipe (those two act on pathwise sampling only); otherwise the row above, whose sampling is marginal.
+    "particles_pathwise": [*PARTICLE_SEARCH, "propagation.sampling=pathwise", "propagation.num_features=256",
+                           "propagation.path_dtype=float32"],
 }
 # Issue 8's targets: wall time of one policy search, by (propagator, n), in seconds.
 TARGETS: dict[tuple[str, int], float] = {

@@ -19,6 +19,16 @@ Two ways to sample the GP (``sampling``):
   is the same along its path, the GP's own belief; a step costs O(n + L) per particle and output.
   With ``expected_reward`` the per-step predictive is N(x_{t−1} + f_p, diag σ_ε²) (or a point
   without noise): given the function, the noise is the step's only randomness.
+  ``path_dtype="float32"`` evaluates the drawn functions in float32 within a float64 rollout: the
+  functions (ω̃, b, the weights, and the update v, still solved in float64 and then cast) and the
+  scaled data are kept in float32, each step casts z̃ down, and f and ∂f/∂z̃ come back as float64.
+  This is safe because, once v is solved (the ill-conditioned part, (K + σ_ε²I)⁻¹), evaluating
+  f_p(z̃) = Σ_l W_pl cos(ω̃_lᵀz̃ + b_l) + Σ_i k_i v_pi is well conditioned: each term carries a
+  relative round-off of a few float32 ulp (~1e-7, times 1 + |ω̃ᵀz̃ + b|), far below the Monte Carlo
+  error of the function itself, whose kernel comes from L random features (~1/√L, 0.06 at L = 256).
+  A long rollout amplifies any per-step perturbation (a swing-up is chaotic): on the 50-step cart-pole
+  (n = 250, P = 400) float32 moves ∂V/∂ψ by ~1e-2 relative (the float64 torch twin by ~3e-11), still
+  ~10× below the spread between two draws of the functions (~0.14).
 
 Variance control by common random numbers: the base noise, ε_0 `P x D` and ε_1..ε_H
 `H x P x E`, is a deterministic function of (``seed``, draw index). With ``resample_every = 0``
@@ -72,6 +82,8 @@ PATHWISE_STREAM = 2
 SAMPLING = ("marginal", "pathwise")
 # Random Fourier features L per output of a pathwise function (Monte Carlo error of its kernel ~ 1/√L).
 DEFAULT_NUM_FEATURES = 1024
+# The dtypes a pathwise function may be evaluated in (float64: the propagation's own dtype, no cast).
+PATH_DTYPES = {"float64": torch.float64, "float32": torch.float32}
 
 
 class BaseNoise(NamedTuple):
@@ -126,7 +138,9 @@ class Particles:
     (one function per particle for the rollout; see the module docstring), with ``num_features``
     random Fourier features L per output. ``reward_width_scale``: the search scores the task's reward
     with its width × this (MC-PILCO's wider cost; 1: the task's own) in :meth:`expected_return`;
-    :meth:`rollout` (predictions, figures) scores the task's reward. ``seed``: of the base noise.
+    :meth:`rollout` (predictions, figures) scores the task's reward. ``path_dtype``: ``float64``
+    (default) evaluates pathwise functions in the propagation's dtype, ``float32`` in float32 and
+    returns them in the propagation's (see the module docstring). ``seed``: of the base noise.
     ``dtype``: of the propagation (default: the cache's); the policy must share it.
     """
 
@@ -138,6 +152,7 @@ class Particles:
         sampling: str = "marginal",
         num_features: int = DEFAULT_NUM_FEATURES,
         reward_width_scale: float = 1.0,
+        path_dtype: str = "float64",
         **_: object,
     ) -> None:
         """The settings' ranges, checked before any work (``qtl.build`` calls it): a UserError naming what to fix."""
@@ -155,6 +170,8 @@ class Particles:
             raise UserError(
                 f"propagation.reward_width_scale must be > 0 (1: the task's reward), got {reward_width_scale}"
             )
+        if path_dtype not in PATH_DTYPES:
+            raise UserError(f"propagation.path_dtype must be one of {', '.join(PATH_DTYPES)}, got {path_dtype!r}")
 
     def __init__(
         self,
@@ -171,11 +188,13 @@ class Particles:
         sampling: str = "marginal",
         num_features: int = DEFAULT_NUM_FEATURES,
         reward_width_scale: float = 1.0,
+        path_dtype: str = "float64",
         seed: int = 0,
         dtype: torch.dtype | None = None,
     ) -> None:
         self.check_settings(num_particles=num_particles, resample_every=resample_every, seed=seed,
-                            sampling=sampling, num_features=num_features, reward_width_scale=reward_width_scale)
+                            sampling=sampling, num_features=num_features, reward_width_scale=reward_width_scale,
+                            path_dtype=path_dtype)
         data, self.features, self.dtype = propagation_inputs(model, policy, reward, angle_dims, dtype)
         self.state_dim = self.features.state_dim
         self.policy = policy
@@ -188,6 +207,7 @@ class Particles:
         self.gaussian_resampling = bool(gaussian_resampling)
         self.sampling = str(sampling)
         self.num_features = int(num_features)
+        self.path_dtype = str(path_dtype)
         self.seed = int(seed)
         self.calls = 0  # evaluations of expected_return so far: they set the draw index
         self._noise: tuple[tuple[int, int], BaseNoise] | None = None
@@ -203,6 +223,12 @@ class Particles:
         self._K_inv = data["K_inv"]
         self._signal_variance = data["signal_variance"]
         self._noise_variance = data["noise_variance"]  # ... x E
+        self._noise_std = self._noise_variance.sqrt()  # σ_ε: ... x E
+        # What the pathwise functions are evaluated with: float32 copies with path_dtype=float32 (else these).
+        self._eval_dtype = torch.float32 if self.path_dtype == "float32" else self.dtype
+        self._path_data, self._path_data_sq, self._path_signal_variance = (
+            t.to(self._eval_dtype) for t in (self._data, self._data_sq, self._signal_variance)
+        )
 
     # -- common random numbers ------------------------------------------------------------------
 
@@ -233,7 +259,11 @@ class Particles:
         return self._noise[1]
 
     def functions(self, draw: int | None = None) -> MatheronPaths:
-        """The P pathwise functions per output of one draw (default: the latest); needs ``sampling="pathwise"``."""
+        """The P pathwise functions per output of one draw (default: the latest); needs ``sampling="pathwise"``.
+
+        Drawn and solved in the propagation's dtype, then kept in the evaluation's (float32 with
+        ``path_dtype="float32"``).
+        """
         if self.sampling != "pathwise":
             raise ValueError(f"functions() needs sampling='pathwise', this propagator samples {self.sampling!r}")
         draw = self.draw_index() if draw is None else draw
@@ -243,7 +273,7 @@ class Particles:
             features = draw_features(gen, num_outputs, input_dim, num_points, self.num_particles, self.num_features)
             paths = matheron_paths(features, self._data, self._beta, self._K_inv, self._signal_variance,
                                    self._noise_variance)
-            self._functions = (draw, paths)
+            self._functions = (draw, MatheronPaths(*(t.to(self._eval_dtype) for t in paths)))
         return self._functions[1]
 
     # -- propagation ----------------------------------------------------------------------------
@@ -270,6 +300,11 @@ class Particles:
         x = start.mean[..., None, :] + start_noise @ matrix_root(start.cov).mT  # x_0 = μ_0 + L_0 ε_0
         x = x.expand(*batch, self.num_particles, self.state_dim)
         states, actions, means, variances = [x], [], [], []
+        # Pathwise: the step noise σ_ε ε_t of every step in one product, `H x ... x P x E` (none without noise).
+        noise_steps = None
+        if functions is not None and self.include_noise:
+            noise_steps = self._noise_std[..., None, :] * step_noise.view(
+                horizon, *(1,) * (self._noise_std.dim() - 1), *step_noise.shape[1:])
         for t in range(horizon):
             y = self.features(x)  # ... x P x (D + K), exact per particle
             u = self.policy(y)  # ... x P x F
@@ -281,24 +316,31 @@ class Particles:
                 if self.include_noise:
                     var = var + self._noise_variance[..., None]
                 delta = mean + _safe_sqrt(var) * step_noise[t].mT  # Δ ~ N(m, v) reparameterised
+                if self.expected_reward:
+                    means.append(x + mean.mT)
+                    variances.append(var.mT)
+                x = x + delta.mT
             else:
-                mean = path_values(z, self._data, self._data_sq, self._signal_variance, functions)  # f_p: ... x E x P
-                var = torch.zeros_like(mean)
-                delta = mean
-                if self.include_noise:  # the observation noise, independent per step, on top of f_p
-                    var = var + self._noise_variance[..., None]
-                    delta = mean + self._noise_variance.sqrt()[..., None] * step_noise[t].mT
-            if self.expected_reward:
-                means.append(x + mean.mT)
-                variances.append(var.mT)
-            x = x + delta.mT
+                step = path_values(z.to(self._eval_dtype), self._path_data, self._path_data_sq,
+                                   self._path_signal_variance, functions).to(self.dtype).mT  # f_p: ... x P x E
+                if self.expected_reward:
+                    means.append(x + step)
+                if noise_steps is not None:  # the observation noise, independent per step, on top of f_p
+                    step = step + noise_steps[t]
+                x = x + step
             if resampling_noise is not None:
                 x = _gaussian_resample(x, resampling_noise[t])
             states.append(x)
             actions.append(u)
         predictive = None
         if self.expected_reward:
-            predictive = Gaussian(torch.stack(means, dim=-2), torch.diag_embed(torch.stack(variances, dim=-2)))
+            mean = torch.stack(means, dim=-2)  # ... x P x H x D
+            if functions is None:
+                var = torch.stack(variances, dim=-2)
+            else:  # given its function a particle's step varies by the noise alone: σ_ε² (or 0) at every step
+                var = (self._noise_variance if self.include_noise else torch.zeros_like(self._noise_variance))
+                var = var[..., None, None, :].expand(mean.shape)
+            predictive = Gaussian(mean, torch.diag_embed(var))
         return torch.stack(states, dim=-2), torch.stack(actions, dim=-2), predictive
 
     def rollout(

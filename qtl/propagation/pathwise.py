@@ -136,8 +136,9 @@ def path_values(z: Tensor, data: Tensor, data_sq: Tensor, signal_variance: Tenso
 
     ``data`` `... x E x n x D` and ``data_sq`` `... x E x n` as in :func:`~qtl.kernels.gp_predictive`;
     ``signal_variance`` α² `... x E`; ``paths`` from :func:`matheron_paths`. Differentiable in ``z``.
-    Float64 CPU operands take the compiled kernel (`qtl/kernels/native/pathwise.c`) when the exp sums'
-    backend is native (``qtl.kernels.use_backend``); everything else the torch ``_PathValues``.
+    CPU operands all float64 or all float32 take the compiled kernel (`qtl/kernels/native/pathwise.c`, one
+    body in both precisions) when the exp sums' backend is native (``qtl.kernels.use_backend``); everything
+    else the torch ``_PathValues`` (in the operands' dtype).
     """
     if active_backend() == "native" and native_fits(z, data, signal_variance, *paths):
         return native_path_values(z, data, signal_variance, *paths)

@@ -48,11 +48,16 @@ def make_problem(
     return z, data, data.square().sum(-1), signal_variance, paths
 
 
+def probe_for(value: Tensor, probe_seed: int = 7) -> Tensor:
+    """A random probe of ``value``'s shape and dtype (the same numbers in any dtype)."""
+    return torch.randn(value.shape, generator=torch.Generator().manual_seed(probe_seed), dtype=DTYPE).to(value.dtype)
+
+
 def values_and_grad(fn, z: Tensor, probe_seed: int = 7) -> tuple[Tensor, Tensor]:
-    """f = fn(z) and the gradient of Σ probe · f for ``z`` (a random probe of f's shape)."""
+    """f = fn(z) and the gradient of Σ probe · f for ``z`` (:func:`probe_for`)."""
     z = z.detach().clone().requires_grad_()
     value = fn(z)
-    probe = torch.randn(value.shape, generator=torch.Generator().manual_seed(probe_seed), dtype=value.dtype)
+    probe = probe_for(value, probe_seed)
     (grad,) = torch.autograd.grad((value * probe).sum(), z)
     return value, grad
 
@@ -148,7 +153,8 @@ def test_no_gradient_is_formed_without_grad_mode(library, monkeypatch):
     assert asked == [False, True]
 
 
-def test_path_values_dispatch_native_for_float64_and_torch_for_float32(library, monkeypatch):
+def test_path_values_dispatch_native_for_float64_and_float32(library, monkeypatch):
+    # Operands all float64 or all float32 take the kernel of their precision; mixed dtypes take torch.
     calls = []
     apply = NativePathValues.apply
     monkeypatch.setattr(NativePathValues, "apply", lambda *args: calls.append(args[0].dtype) or apply(*args))
@@ -159,12 +165,88 @@ def test_path_values_dispatch_native_for_float64_and_torch_for_float32(library, 
             got = values_and_grad(lambda z, operands=operands: path_values(z, *operands), z)
         with backend("torch"):
             want = values_and_grad(lambda z, operands=operands: path_values(z, *operands), z)
-        if dtype == torch.float32:  # the torch path: the very same operations
-            assert all(torch.equal(g, w) for g, w in zip(got, want, strict=True))
-        else:
-            for g, w in zip(got, want, strict=True):
-                assert_rel_close(g, w, RTOL)
-    assert calls == [DTYPE]  # float32 never reached the kernel; float64 did, once
+        for g, w in zip(got, want, strict=True):
+            assert g.dtype == dtype
+            assert_rel_close(g, w, F32_RTOL if dtype == torch.float32 else RTOL)
+    assert calls == [torch.float32, DTYPE]
+    assert not native_pathwise.native_fits(z.float(), data, signal_variance)  # mixed dtypes: not the kernel
+
+
+def term_scales(z: Tensor, data: Tensor, signal_variance: Tensor, paths: MatheronPaths) -> tuple[Tensor, Tensor]:
+    """Σ of the terms' magnitudes of f `... x E x P` and of ∂f/∂z̃ `... x E x P x 1` (float64, from float64 operands).
+
+    f = Σ_l W_pl cos(a_l) + Σ_i k_i v_pi: its float32 round-off is relative to Σ_l |W_pl| + Σ_i |k_i v_pi|
+    (the terms may cancel), and that of ∂f/∂z̃, formed (natively and by the torch twin) as
+    Σ_i k_i v_pi x̃_i − z̃ Σ_i k_i v_pi − Σ_l W_pl sin(a_l) ω̃_l, to Σ_i |k_i v_pi| (|x̃_i| + |z̃|) + Σ_l |W_pl| |ω̃_l|.
+    """
+    diff = z[..., :, None, :] - data[..., None, :, :]  # ... x E x P x n x D
+    kv = (signal_variance[..., None, None] * torch.exp(-0.5 * diff.square().sum(-1)) * paths.update).abs()
+    weights = paths.weights.abs()
+    value = kv.sum(-1) + weights.sum(-1)
+    spread = data.norm(dim=-1)[..., None, :] + z.norm(dim=-1)[..., None]  # |x̃_i| + |z̃|: ... x E x P x n
+    grad = (kv * spread).sum(-1) + (weights * paths.frequencies.norm(dim=-1)[..., None, :]).sum(-1)
+    return value, grad[..., None]
+
+
+def assert_within_scale(got: Tensor, want: Tensor, scale: Tensor, rtol: float) -> None:
+    """Same shape, every entry within ``rtol`` times its row's term scale (``scale`` broadcasts against it)."""
+    assert got.shape == want.shape
+    ratio = ((got.double() - want.double()).abs() / scale).max().item()
+    assert ratio <= rtol, f"max error {ratio:.3g} of the term scale"
+
+
+# float32 against float64, relative to the sum of the terms' magnitudes (term_scales). Each term is
+# formed from float32 operands (relative round-off u = 2⁻²⁴ ≈ 6e-8 each) in a few operations: the
+# angle a_l = ω̃ᵀz̃ + b to within ~(D + 2) u |a| absolutely, so cos(a_l) and sin(a_l) to within
+# ~(D + 2)(1 + |a|) u ≈ 2e-6 for D ≤ 6, |a| ≲ 3 (z̃ ~ 0.8 N(0, 1), ω̃ ~ N(0, I) here); k_i through its
+# exponent −½|z̃ − x̃|² (the torch twin's |z̃|² + |x̃|² − 2z̃ᵀx̃ to ~u(|z̃|² + |x̃|²)) likewise; libmvec adds
+# ≤ 4 ulp; the sums add ≲ (L/PAD + 4 lanes) u ≈ 1e-6 of the scale (blocked accumulators). So a few
+# 1e-6 of the term scale (≤ 5e-6 observed on SHAPES); F32_RTOL = 1e-5.
+F32_RTOL = 1e-5
+
+
+@pytest.mark.parametrize(("point_batch", "model_batch", "num_out", "num_paths", "num", "num_features", "dim"), SHAPES)
+def test_float32_values_and_gradients_equal_float64_to_the_round_off_of_the_terms(
+    library, point_batch, model_batch, num_out, num_paths, num, num_features, dim
+):
+    # The float32 kernel and the float32 torch twin against float64, and against each other.
+    z, data, data_sq, signal_variance, paths = make_problem(
+        point_batch, model_batch, num_out, num_paths, num, num_features, dim, seed=len(point_batch) + num
+    )
+    single = (data.float(), signal_variance.float(), MatheronPaths(*(t.float() for t in paths)))
+    truth = values_and_grad(lambda z: _PathValues.apply(z, data, data_sq, signal_variance, paths), z)
+    native = values_and_grad(
+        lambda z: native_pathwise.path_values(z, single[0], single[1], *single[2], library=library), z.float()
+    )
+    torch32 = values_and_grad(
+        lambda z: _PathValues.apply(z, single[0], data_sq.float(), single[1], single[2]), z.float()
+    )
+    value_scale, grad_scale = term_scales(z, data, signal_variance, paths)
+    # The gradient is of Σ probe · f, summed over the model items that z broadcasts against.
+    grad_scale = (grad_scale * probe_for(truth[0]).abs()[..., None]).sum_to_size(*z.shape[:-1], 1)
+    scales = (value_scale, grad_scale)
+    for got32, want32, want, scale in zip(native, torch32, truth, scales, strict=True):
+        assert got32.dtype == torch.float32 and want32.dtype == torch.float32
+        assert_within_scale(got32, want, scale, F32_RTOL)
+        assert_within_scale(want32, want, scale, F32_RTOL)
+        assert_within_scale(got32, want32, scale, F32_RTOL)
+    assert not torch.equal(native[0].double(), truth[0])  # float32 really ran
+
+
+def test_float32_thread_counts_give_identical_results(library):
+    z, data, _, signal_variance, paths = make_problem((3,), (), 2, 70, 19, 23, 3, seed=5, dtype=torch.float32)
+    before = torch.get_num_threads()
+    results = []
+    try:
+        for threads in (1, 2):
+            torch.set_num_threads(threads)
+            results.append(values_and_grad(
+                lambda z: native_pathwise.path_values(z, data, signal_variance, *paths, library=library), z
+            ))
+    finally:
+        torch.set_num_threads(before)
+    for got, want in zip(*results, strict=True):
+        assert torch.equal(got, want)
 
 
 def test_build_check_passes_and_catches_a_wrong_kernel(library):
@@ -222,3 +304,25 @@ def test_particle_rollout_equal_between_backends(library, gp_factory, monkeypatc
     assert_rel_close(v_native, v_torch, ROLLOUT_RTOL)
     for got, want in itertools.zip_longest(g_native, g_torch):
         assert_rel_close(got, want, ROLLOUT_RTOL)
+
+
+@pytest.mark.parametrize("reach", [1.0, 30.0, 300.0, 3000.0])
+def test_float32_sin_and_cos_hold_for_large_angles(library, reach):
+    # With ∂f/∂z̃ the float32 kernel takes sin and cos from one argument reduction (pathwise.c, sincos_f32):
+    # against float64 it is as good as float32 allows, whose angle a = ω̃ᵀz̃ + b itself carries ≤ (D + 2) u |a|
+    # (u = 2⁻²⁴) per term, also for |a| in the thousands (observed: ~2e-9 |a| of the term scale, the terms'
+    # errors partly cancelling). Data far away (k ≈ 0): f and ∂f/∂z̃ are the random-feature part alone.
+    z, data, _, signal_variance, paths = make_problem((), (), 2, 64, 5, 200, 3, seed=11)
+    z = z * reach
+    data = data + 1e3
+    single = (data.float(), signal_variance.float(), MatheronPaths(*(t.float() for t in paths)))
+    truth = values_and_grad(lambda z: native_pathwise.path_values(z, data, signal_variance, *paths, library=library), z)
+    got = values_and_grad(
+        lambda z: native_pathwise.path_values(z, single[0], single[1], *single[2], library=library), z.float()
+    )
+    angle = (z @ paths.frequencies.mT + paths.phases[..., None, :]).abs().amax()  # the largest |a|
+    assert angle > 0.5 * reach
+    value_scale, grad_scale = term_scales(z, data, signal_variance, paths)
+    grad_scale = grad_scale * probe_for(truth[0]).abs()[..., None]
+    for g, w, scale in zip(got, truth, (value_scale, grad_scale), strict=True):
+        assert_within_scale(g, w, scale * (1 + angle), (3 + 2) * 2.0**-24)

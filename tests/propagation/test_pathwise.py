@@ -16,6 +16,7 @@ from qtl.config import register_configs
 from qtl.errors import UserError
 from qtl.features import AngleFeatures
 from qtl.gaussian import Gaussian
+from qtl.kernels.exp_sum import backend
 from qtl.models import GPPosteriorCache
 from qtl.policies import RBFPolicy, SquashedPolicy
 from qtl.propagation import Particles
@@ -340,3 +341,94 @@ def test_build_refuses_bad_particle_settings_before_any_work(override, message):
     """A bad particle setting is a one-line UserError from build(), before any episode runs."""
     with pytest.raises(UserError, match=message):
         build(tiny_config("propagation=particles", override))
+
+
+# -- path_dtype: the drawn functions evaluated in float32 within a float64 rollout ----------------------------
+
+# Path values in float32 against float64, relative to the largest |f| of the batch: a few float32 ulp of the
+# terms (tests/kernels/test_native_pathwise.py derives ~5e-6 of Σ|terms|), and here the terms do not cancel
+# much (Σ|terms| ≲ 3 max|f| on these data).
+PATH_F32_RTOL = 2e-5
+# A whole rollout: each step's f carries the error above (~1e-6 of a step), which the 5 steps' dynamics
+# (policy, angle features, Lipschitz constant of f ~ O(1)) carry into V and ∂V/∂ψ amplified by at most ~10
+# (observed: ~2e-6 on both backends).
+ROLLOUT_F32_RTOL = 5e-5
+
+
+def rollout_value_and_grads(particles: Particles, policy, start: Gaussian, horizon: int) -> tuple[Tensor, ...]:
+    """V and ∂V/∂ψ for every policy parameter (float64)."""
+    value = particles.rollout(start, horizon).value
+    return value.detach(), *torch.autograd.grad(value, tuple(policy.parameters()))
+
+
+def test_path_dtype_float32_keeps_the_float64_functions_in_float32(gp_factory):
+    # The update v is solved in float64 and then cast: the float32 functions are the float64 ones, rounded.
+    gp, policy, reward = pendulum_parts(gp_factory)
+    double, single = pathwise(gp, policy, reward), pathwise(gp, policy, reward, path_dtype="float32")
+    for d, s in zip(double.functions(), single.functions(), strict=True):
+        assert d.dtype == DTYPE and s.dtype == torch.float32
+        assert torch.equal(s, d.float())
+
+
+@pytest.mark.parametrize("name", ["native", "torch"])
+def test_path_dtype_float32_values_and_gradients_equal_float64(gp_factory, name):
+    gp, policy, reward = pendulum_parts(gp_factory)
+    double, single = pathwise(gp, policy, reward), pathwise(gp, policy, reward, path_dtype="float32")
+    gen = torch.Generator().manual_seed(8)
+    z = (torch.randn(3, 16, 5, generator=gen, dtype=DTYPE) * double._inv_lengthscales).requires_grad_()
+    probe = torch.randn(3, 16, generator=gen, dtype=DTYPE)
+    results = []
+    with backend(name):
+        for particles in (double, single):
+            value = path_values(z.to(particles._eval_dtype), particles._path_data, particles._path_data_sq,
+                                particles._path_signal_variance, particles.functions()).to(DTYPE)
+            results.append((value, *torch.autograd.grad((value * probe).sum(), z)))
+    assert results[1][0].dtype == DTYPE
+    for got, want in zip(results[1], results[0], strict=True):
+        scale = want.abs().max()
+        assert 0 < (got - want).abs().max() <= PATH_F32_RTOL * scale  # > 0: float32 really ran
+
+
+@pytest.mark.parametrize("name", ["native", "torch"])
+def test_path_dtype_float32_rollout_equals_float64(gp_factory, name):
+    gp, policy, reward = pendulum_parts(gp_factory)
+    start = Gaussian(torch.tensor([0.1, 2.5, -0.3], dtype=DTYPE), torch.diag(torch.tensor([0.04, 0.2, 0.09],
+                                                                                         dtype=DTYPE)))
+    with backend(name):
+        want = rollout_value_and_grads(pathwise(gp, policy, reward), policy, start, 5)
+        got = rollout_value_and_grads(pathwise(gp, policy, reward, path_dtype="float32"), policy, start, 5)
+    assert got[0].dtype == DTYPE
+    for g, w in zip(got, want, strict=True):
+        assert 0 < (g - w).abs().max() <= ROLLOUT_F32_RTOL * w.abs().max()
+
+
+def test_path_dtype_float64_is_the_default_bit_for_bit(gp_factory):
+    # The default evaluates in the propagation's dtype with no cast: explicit float64 gives the same bits,
+    # and the first step from a point start is x_0 + f_p(z̃_0) of the float64 path values, exactly.
+    gp, policy, reward = pendulum_parts(gp_factory)
+    start = Gaussian(torch.tensor([0.1, 2.5, -0.3], dtype=DTYPE), 0.05 * torch.eye(3, dtype=DTYPE))
+    default = pathwise(gp, policy, reward)
+    explicit = pathwise(gp, policy, reward, path_dtype="float64")
+    assert default.path_dtype == "float64"
+    for got, want in zip(rollout_value_and_grads(explicit, policy, start, 5),
+                         rollout_value_and_grads(default, policy, start, 5), strict=True):
+        assert torch.equal(got, want)
+    point = Gaussian(torch.tensor([0.1, 0.2, -0.3], dtype=DTYPE), torch.zeros(3, 3, dtype=DTYPE))
+    particles = pathwise(gp, policy, reward, include_noise=False)
+    with torch.no_grad():
+        states, actions = particles.trajectories(point, 1)
+        data, data_sq, inv_ls = scaled(gp.posterior_cache())
+        z = torch.cat([AngleFeatures(3, (1,))(states[:, 0]), actions[:, 0]], dim=-1)[None] * inv_ls
+        f = path_values(z, data, data_sq, gp.posterior_cache().hyperparameters.signal_variance,
+                        particles.functions())
+    assert f.dtype == DTYPE and torch.equal(states[:, 1], states[:, 0] + f.mT)
+
+
+def test_bad_path_dtype_is_a_user_error(gp_factory):
+    gp, policy, reward = pendulum_parts(gp_factory)
+    with pytest.raises(UserError, match=r"propagation\.path_dtype must be one of float64, float32, got 'float16'"):
+        pathwise(gp, policy, reward, path_dtype="float16")
+    with pytest.raises(UserError, match=r"propagation\.path_dtype must be one of"):
+        build(tiny_config("propagation=particles", "propagation.path_dtype=float16"))
+    assert build(tiny_config("propagation=particles", "propagation.path_dtype=float32")).make_propagator.keywords[
+        "path_dtype"] == "float32"

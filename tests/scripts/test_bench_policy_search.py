@@ -49,6 +49,12 @@ def test_smallest_configuration_measures_both_propagators_without_touching_docs(
     assert "variance_products_s_per_evaluation" not in mm
     assert particles["propagation"]["sampling"] == "marginal" and pathwise["propagation"]["sampling"] == "pathwise"
     assert pathwise["propagation"]["num_features"] == 256 and pathwise["optimizer"]["steps"] == 3
+    assert pathwise["propagation"]["path_dtype"] == "float32"
+    # Like with like: both particle rows run the mc_pilco recipe's propagation, apart from the sampling.
+    for key in ("resample_every", "expected_reward", "include_noise", "num_particles", "reward_width_scale"):
+        assert particles["propagation"][key] == pathwise["propagation"][key], key
+    assert (pathwise["propagation"]["resample_every"], pathwise["propagation"]["expected_reward"]) == (1, False)
+    assert particles["optimizer"] == pathwise["optimizer"]
     # Pathwise against marginal, in the same run: both times and their ratio in the section.
     ratio = pathwise["search_s"] / particles["search_s"]
     assert "Pathwise against marginal" in done.stdout

@@ -1,6 +1,7 @@
 """The native pathwise-function values (`pathwise.c`): f and ∂f/∂z̃ in one compiled call, as an autograd op.
 
-The twin of ``qtl.propagation.pathwise._PathValues`` for float64 CPU operands: for each output e and
+The twin of ``qtl.propagation.pathwise._PathValues`` for float64 or float32 CPU operands (one C body compiled
+in both precisions; float32 is what ``propagation.path_dtype=float32`` evaluates in): for each output e and
 particle p, f_p(z̃) = Σ_l W_pl cos(ω̃_lᵀ z̃ + b_l) + Σ_i α² exp(−½|z̃ − x̃_i|²) v_pi (inputs over the
 lengthscales), with its gradient for z̃ formed in the same pass and kept for backward.
 """
@@ -21,16 +22,25 @@ from qtl.kernels.native.library import binding_once, load_binding
 _PTR, _INT64, _INT = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int
 # The smoke check's tolerance (relative to the largest reference value, float64).
 CHECK_RTOL = 1e-12
+# The same in float32, against the float32 torch twin: each of the ~L + n terms is within a few ulp
+# (2⁻²⁴ ≈ 6e-8) of its value times (1 + |angle|), and the angles are O(1) here.
+CHECK_RTOL_F32 = 1e-5
+# The compiled entry point per operand dtype.
+ENTRY_POINTS = {torch.float64: "qtl_path_values", torch.float32: "qtl_path_values_f32"}
 
 
 class PathValuesLibrary:
-    """``qtl_path_values`` of the compiled library, through ctypes."""
+    """``qtl_path_values`` (float64) and ``qtl_path_values_f32`` (float32) of the compiled library, through ctypes."""
 
     def __init__(self, path: Path) -> None:
         lib = ctypes.CDLL(str(path))
-        # z, x, sf2, omega, phase, w, v, offsets, row_strides, items, rows, n, L, D, f, grad, threads
-        lib.qtl_path_values.argtypes = [*[_PTR] * 9, *[_INT64] * 5, _PTR, _PTR, _INT]
-        lib.qtl_path_values.restype = _INT
+        self._entries = {}
+        for dtype, name in ENTRY_POINTS.items():
+            entry = getattr(lib, name)
+            # z, x, sf2, omega, phase, w, v, offsets, row_strides, items, rows, n, L, D, f, grad, threads
+            entry.argtypes = [*[_PTR] * 9, *[_INT64] * 5, _PTR, _PTR, _INT]
+            entry.restype = _INT
+            self._entries[dtype] = entry
         self._lib = lib
         self.path = path
 
@@ -49,7 +59,8 @@ class PathValuesLibrary:
 
         z `... x E x P x D`, data `... x E x n x D`, signal_variance α² `... x E`, frequencies
         `... x E x L x D`, phases `... x E x L`, weights `... x E x P x L`, update `... x E x P x n`:
-        leading dimensions (E and P included) broadcast, and are never copied per item.
+        leading dimensions (E and P included) broadcast, and are never copied per item. All operands
+        float64, or all float32 (the float32 kernel); the results have their dtype.
         """
         batch = torch.broadcast_shapes(
             z.shape[:-2], data.shape[:-2], signal_variance.shape, frequencies.shape[:-2], phases.shape[:-1],
@@ -70,7 +81,7 @@ class PathValuesLibrary:
         items = math.prod(batch)
         value = z.new_empty(*batch, rows)
         grad = z.new_empty(*batch, rows, dim) if with_grad else None
-        status = self._lib.qtl_path_values(
+        status = self._entries[z.dtype](
             *(t.data_ptr() for t in operands), offsets.data_ptr(), row_strides.data_ptr(),
             items, rows, n, num_features, dim, value.data_ptr(), None if grad is None else grad.data_ptr(),
             torch.get_num_threads(),
@@ -135,8 +146,9 @@ class NativePathValues(torch.autograd.Function):
 
 
 def native_fits(*tensors: Tensor) -> bool:
-    """Whether the native path values take these operands: all float64 on the CPU."""
-    return all(t.device.type == "cpu" and t.dtype == torch.float64 for t in tensors)
+    """Whether the native path values take these operands: on the CPU, all float64 or all float32."""
+    dtype = tensors[0].dtype
+    return dtype in ENTRY_POINTS and all(t.device.type == "cpu" and t.dtype == dtype for t in tensors)
 
 
 def path_values(
@@ -179,23 +191,26 @@ def check_against_torch(library: PathValuesLibrary | None = None, error: type[Ex
     over the restarts, with the update broadcast over the particles too; raises ``error`` (e.g.
     ``build.BuildError``; a RuntimeError by default) when they differ beyond CHECK_RTOL of the largest value.
     ``qtl.propagation.pathwise._PathValues`` (a layer above) is compared with it by the test suite.
+    Checked in float64 (CHECK_RTOL) and in float32 (the float32 kernel against float32 torch, CHECK_RTOL_F32).
     """
     library = library or load_path_values()
     gen = torch.Generator().manual_seed(0)
     f64 = torch.float64
-    z = (0.7 * torch.randn(2, 3, 5, 3, generator=gen, dtype=f64)).requires_grad_()
+    z = 0.7 * torch.randn(2, 3, 5, 3, generator=gen, dtype=f64)
     data = torch.randn(3, 7, 3, generator=gen, dtype=f64)
     signal_variance = 0.5 + torch.rand(3, generator=gen, dtype=f64)
     frequencies = torch.randn(3, 9, 3, generator=gen, dtype=f64)
     phases = 2 * math.pi * torch.rand(3, 9, generator=gen, dtype=f64)
     weights = torch.randn(3, 5, 9, generator=gen, dtype=f64)
     update = torch.randn(3, 1, 7, generator=gen, dtype=f64)
-    operands = (data, signal_variance, frequencies, phases, weights, update)
     probe = torch.randn(2, 3, 5, generator=gen, dtype=f64)
-    results = []
-    for value in (path_values(z, *operands, library=library), _reference(z, *operands)):
-        results.append((value, *torch.autograd.grad((value * probe).sum(), z)))
-    for got, want in zip(*results, strict=True):
-        err, scale = (got - want).abs().max().item(), want.abs().max().item()
-        if got.shape != want.shape or not err <= CHECK_RTOL * scale:
-            raise error(f"the compiled pathwise kernel disagrees with torch (max error {err:.3g})")
+    for dtype, rtol in ((f64, CHECK_RTOL), (torch.float32, CHECK_RTOL_F32)):
+        point = z.to(dtype).requires_grad_()
+        operands = tuple(t.to(dtype) for t in (data, signal_variance, frequencies, phases, weights, update))
+        results = []
+        for value in (path_values(point, *operands, library=library), _reference(point, *operands)):
+            results.append((value, *torch.autograd.grad((value * probe.to(dtype)).sum(), point)))
+        for got, want in zip(*results, strict=True):
+            err, scale = (got - want).abs().max().item(), want.abs().max().item()
+            if got.shape != want.shape or got.dtype != dtype or not err <= rtol * scale:
+                raise error(f"the compiled pathwise kernel disagrees with torch in {dtype} (max error {err:.3g})")
