@@ -272,8 +272,8 @@ class Particles:
             num_outputs, num_points, input_dim = self._data.shape[-3:]
             features = draw_features(gen, num_outputs, input_dim, num_points, self.num_particles, self.num_features)
             paths = matheron_paths(features, self._data, self._beta, self._K_inv, self._signal_variance,
-                                   self._noise_variance)
-            self._functions = (draw, MatheronPaths(*(t.to(self._eval_dtype) for t in paths)))
+                                   self._noise_variance, dtype=self._eval_dtype)
+            self._functions = (draw, paths)
         return self._functions[1]
 
     # -- propagation ----------------------------------------------------------------------------

@@ -74,23 +74,38 @@ def draw_features(
 
 
 def matheron_paths(
-    draw: FeatureDraw, data: Tensor, beta: Tensor, K_inv: Tensor, signal_variance: Tensor, noise_variance: Tensor
+    draw: FeatureDraw,
+    data: Tensor,
+    beta: Tensor,
+    K_inv: Tensor,
+    signal_variance: Tensor,
+    noise_variance: Tensor,
+    dtype: torch.dtype | None = None,
 ) -> MatheronPaths:
     """P posterior functions per output by Matheron's rule (Wilson et al. 2020, Eq. 13).
 
     ``draw``: the standard random numbers (any dtype; converted to ``data``'s); ``data`` `... x E x n x D`:
     the training inputs over ℓ; ``beta`` `... x E x n`; ``K_inv`` `... x E x n x n` = (K + σ_ε²I)⁻¹;
-    ``signal_variance`` α² and ``noise_variance`` σ_ε² `... x E`. Not differentiable (θ and data fixed).
+    ``signal_variance`` α² and ``noise_variance`` σ_ε² `... x E`. ``dtype``: the returned functions'
+    (default: ``data``'s). A lower one (float32) also forms the prior sample at the data f̃_p(X) in it (the
+    cos and the `n x L` by `L x P` product: well conditioned, a few ulp of Σ_l |W_pl|), while the solve with
+    (K + σ_ε²I)⁻¹ stays in ``data``'s dtype and v is cast last. Not differentiable (θ and data fixed).
     """
     like = {"device": data.device, "dtype": data.dtype}
+    dtype = data.dtype if dtype is None else dtype
     frequencies, phases, weights, update_noise = (t.to(**like) for t in draw)
     num_features = frequencies.shape[-2]
     scale = (2.0 * signal_variance / num_features).sqrt()[..., None, None]  # α √(2/L): `... x E x 1 x 1`
     weights = scale * weights  # ... x E x P x L
-    prior_at_data = torch.cos(data @ frequencies.mT + phases[..., None, :]) @ weights.mT  # f̃_p(X): ... x E x n x P
+    # The functions' ω̃, b and W: the data dtype's values, rounded once to ``dtype``.
+    frequencies, phases, weights = (t.to(dtype) for t in (frequencies, phases, weights))
+    angle = data.to(dtype) @ frequencies.mT + phases[..., None, :]  # ... x E x n x L
+    prior_at_data = (torch.cos(angle) @ weights.mT).to(data.dtype)  # f̃_p(X): ... x E x n x P
     residual = prior_at_data + noise_variance.sqrt()[..., None, None] * update_noise  # f̃_p(X) + ε_p
     update = beta[..., :, None] - K_inv @ residual  # v_p = β − (K + σ_ε²I)⁻¹ (f̃_p(X) + ε_p): ... x E x n x P
-    return MatheronPaths(frequencies, phases, weights, update.mT.contiguous())
+    # `... x E x P x n`, row-contiguous, in one copy (the cast, when there is one, included).
+    update = update.mT.to(dtype, memory_format=torch.contiguous_format).contiguous()
+    return MatheronPaths(frequencies, phases, weights, update)
 
 
 class _PathValues(torch.autograd.Function):

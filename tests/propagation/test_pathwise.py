@@ -20,6 +20,7 @@ from qtl.kernels.exp_sum import backend
 from qtl.models import GPPosteriorCache
 from qtl.policies import RBFPolicy, SquashedPolicy
 from qtl.propagation import Particles
+from qtl.propagation.particles import PATHWISE_STREAM, _draw_seed
 from qtl.propagation.pathwise import FeatureDraw, MatheronPaths, draw_features, matheron_paths, path_values
 from tests.helpers import gradcheck_value_wrt_policy_and_start, quadratic_reward, tiny_config
 from tests.propagation.restarts import assert_restarts_equal_separate
@@ -361,13 +362,80 @@ def rollout_value_and_grads(particles: Particles, policy, start: Gaussian, horiz
     return value.detach(), *torch.autograd.grad(value, tuple(policy.parameters()))
 
 
+def old_matheron_paths(draw: FeatureDraw, cache: GPPosteriorCache) -> MatheronPaths:
+    """Matheron's rule as first written, all in float64: the bits ``dtype=float64`` must keep."""
+    theta = cache.hyperparameters
+    data, _, _ = scaled(cache)
+    frequencies, phases, weights, update_noise = draw
+    weights = (2.0 * theta.signal_variance / frequencies.shape[-2]).sqrt()[..., None, None] * weights
+    prior_at_data = torch.cos(data @ frequencies.mT + phases[..., None, :]) @ weights.mT
+    residual = prior_at_data + theta.noise_variance.sqrt()[..., None, None] * update_noise
+    update = cache.beta[..., :, None] - cache.K_inv @ residual
+    return MatheronPaths(frequencies, phases, weights, update.mT.contiguous())
+
+
+def matheron_in(cache: GPPosteriorCache, draw: FeatureDraw, dtype: torch.dtype | None) -> MatheronPaths:
+    """:func:`matheron_paths` of ``cache``'s GP for ``draw``, the functions in ``dtype``."""
+    theta = cache.hyperparameters
+    data, _, _ = scaled(cache)
+    return matheron_paths(draw, data, cache.beta, cache.K_inv, theta.signal_variance, theta.noise_variance,
+                          dtype=dtype)
+
+
+# The float32 prior sample at the data f̃_p(X) (cos and the `n x L` by `L x P` product in float32) against the
+# float64 one, through the float64 solve, on a drawn function's values, relative to the largest |f|: each entry
+# of f̃_p(X) carries ~√L float32 ulp (2⁻²⁴ ≈ 6e-8) of Σ_l |W_pl| ≲ α √(2L), and f moves by k(x, X) K⁻¹ of that,
+# the GP's smoothing of it (observed ~6e-7 here; ~4e-4 with v in float32 on the 250-point cart-pole data, where
+# rounding v alone to float32 moves f as much).
+PRIOR_F32_RTOL = 2e-5
+
+
+@pytest.mark.parametrize("num_features", [64, 257])
+def test_matheron_paths_float32_prior_at_data_equals_float64(gp_factory, num_features):
+    gp = gp_factory(40, 3, 1, (1,), seed=22)
+    cache = gp.posterior_cache()
+    data, data_sq, _ = scaled(cache)
+    num_outputs, num_points, input_dim = data.shape
+    draw = draw_features(torch.Generator().manual_seed(4), num_outputs, input_dim, num_points, 33, num_features)
+    double, single = matheron_in(cache, draw, None), matheron_in(cache, draw, torch.float32)
+    # float64 (the default, or asked for): the original bits.
+    for paths in (double, matheron_in(cache, draw, DTYPE)):
+        for got, want in zip(paths, old_matheron_paths(draw, cache), strict=True):
+            assert got.dtype == DTYPE and torch.equal(got, want)
+    assert double.update.is_contiguous() and single.update.is_contiguous()
+    # float32: ω̃, b and W are the float64 ones rounded; v differs by the float32 prior at the data.
+    for got, want in zip(single[:3], double[:3], strict=True):
+        assert got.dtype == torch.float32 and torch.equal(got, want.float())
+    assert single.update.dtype == torch.float32 and not torch.equal(single.update, double.update.float())
+    # The functions' values, both evaluated in float64 (the float32 update cast up): only v differs.
+    z = torch.randn(num_outputs, 33, input_dim, generator=torch.Generator().manual_seed(5), dtype=DTYPE)
+    z = torch.stack([z, data[:, :33]])  # random points, and points at the data (where v matters most)
+    signal_variance = cache.hyperparameters.signal_variance
+    want = path_values(z, data, data_sq, signal_variance, double)
+    got = path_values(z, data, data_sq, signal_variance, MatheronPaths(*double[:3], single.update.double()))
+    assert 0 < (got - want).abs().max() <= PRIOR_F32_RTOL * want.abs().max()
+
+
 def test_path_dtype_float32_keeps_the_float64_functions_in_float32(gp_factory):
-    # The update v is solved in float64 and then cast: the float32 functions are the float64 ones, rounded.
+    # ω̃, b, W are the float64 draw's rounded to float32; v is solved in float64 and cast (its prior at the
+    # data formed in float32: see the test above); float64 functions keep the original bits.
     gp, policy, reward = pendulum_parts(gp_factory)
     double, single = pathwise(gp, policy, reward), pathwise(gp, policy, reward, path_dtype="float32")
-    for d, s in zip(double.functions(), single.functions(), strict=True):
+    for got, want in zip(double.functions(), old_matheron_paths(draw_of(double), gp.posterior_cache()), strict=True):
+        assert torch.equal(got, want)
+    for d, s in zip(double.functions()[:3], single.functions()[:3], strict=True):
         assert d.dtype == DTYPE and s.dtype == torch.float32
         assert torch.equal(s, d.float())
+    update = single.functions().update
+    assert update.dtype == torch.float32
+    assert torch.equal(update, matheron_in(gp.posterior_cache(), draw_of(double), torch.float32).update)
+
+
+def draw_of(particles: Particles, draw: int = 0) -> FeatureDraw:
+    """The standard random numbers of pathwise draw ``draw``, as :meth:`Particles.functions` draws them."""
+    gen = torch.Generator().manual_seed(_draw_seed(particles.seed, draw, PATHWISE_STREAM))
+    num_outputs, num_points, input_dim = particles._data.shape[-3:]
+    return draw_features(gen, num_outputs, input_dim, num_points, particles.num_particles, particles.num_features)
 
 
 @pytest.mark.parametrize("name", ["native", "torch"])
