@@ -20,7 +20,8 @@ Two ways to sample the GP (``sampling``):
   With ``expected_reward`` the per-step predictive is N(x_{t−1} + f_p, diag σ_ε²) (or a point
   without noise): given the function, the noise is the step's only randomness.
   ``path_dtype="float32"`` evaluates the drawn functions in float32 within a float64 rollout: the
-  functions (ω̃, b, the weights, and the update v, still solved in float64 and then cast) and the
+  functions (ω̃, b, the weights, and the update v, still solved in float64 and then cast; its prior sample
+  at the data f̃_p(X), a well-conditioned cos and `n x L` by `L x P` product, is formed in float32) and the
   scaled data are kept in float32, each step casts z̃ down, and f and ∂f/∂z̃ come back as float64.
   This is safe because, once v is solved (the ill-conditioned part, (K + σ_ε²I)⁻¹), evaluating
   f_p(z̃) = Σ_l W_pl cos(ω̃_lᵀz̃ + b_l) + Σ_i k_i v_pi is well conditioned: each term carries a
@@ -262,7 +263,7 @@ class Particles:
         """The P pathwise functions per output of one draw (default: the latest); needs ``sampling="pathwise"``.
 
         Drawn and solved in the propagation's dtype, then kept in the evaluation's (float32 with
-        ``path_dtype="float32"``).
+        ``path_dtype="float32"``, which also forms the prior sample at the data in float32).
         """
         if self.sampling != "pathwise":
             raise ValueError(f"functions() needs sampling='pathwise', this propagator samples {self.sampling!r}")
