@@ -56,8 +56,9 @@ def test_policy_transfer_reproduces_the_source_policy_exactly(source_dir, tmp_pa
     policy = build(tiny_config("seed=3")).initial_policy()
     policy.load_state_dict(source.policy)
     states = torch.as_tensor(target["dataset"]["states"][0][:-1])
-    with torch.no_grad():
-        expected = policy(features(states)).clamp(-task.action_bound[0], task.action_bound[0])
+    with torch.no_grad():  # one observation at a time, as the actor applies it (a batch rounds otherwise)
+        expected = torch.stack([policy(features(state)) for state in states])
+        expected = expected.clamp(-task.action_bound[0], task.action_bound[0])
     torch.testing.assert_close(torch.as_tensor(target["dataset"]["actions"][0]), expected, rtol=0, atol=0)
 
 
