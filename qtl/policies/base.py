@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from collections.abc import Callable
 
 import torch
 from torch import Tensor, nn
@@ -38,6 +39,10 @@ class Policy(nn.Module, ABC):
     @abstractmethod
     def prepare(self) -> GaussianMap:
         """The moment-matching map of this policy with its ψ-only quantities precomputed."""
+
+    def actions(self) -> Callable[[Tensor], Tensor]:
+        """``forward`` with its ψ-only quantities made once (a particle rollout takes it once, calls it each step)."""
+        return self.forward
 
     def set_dropout(self, rate: float, generator: torch.Generator | None = None) -> None:
         """Drop parts of the policy at random in ``forward`` with probability ``rate`` (0: off); some policies can."""

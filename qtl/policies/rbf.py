@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Callable
+
 import torch
 from torch import Tensor, nn
 
@@ -99,8 +102,16 @@ class RBFPolicy(Policy):
 
     def forward(self, x: Tensor) -> Tensor:
         """Actions `... x F` for features `... x D` (Eq. 5); batched ψ: `R x S x F` for `R x S x D`."""
+        return self._act(x, self.per_point(self.weights()))
+
+    def actions(self) -> Callable[[Tensor], Tensor]:
+        """``forward`` with β_π = (K_π + σ_π²I)⁻¹ y_π solved once (not at every step of a rollout)."""
+        return functools.partial(self._act, weights=self.per_point(self.weights()))
+
+    def _act(self, x: Tensor, weights: Tensor) -> Tensor:
+        """Σ_s β_s k_π(x_s, y) for features ``x`` and per-point β_π ``weights``."""
         kern = POLICY_SIGNAL_VARIANCE * se_activations(self, x, self.support_points)
-        return (kern * self.per_point(self.weights())).sum(-1)
+        return (kern * weights).sum(-1)
 
     def prepare(self) -> GaussianMap:
         """Exact moments of the RBF network at Gaussian inputs, β_π computed once (PILCO gp2); batched ψ broadcast."""

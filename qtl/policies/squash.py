@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import functools
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import torch
@@ -145,6 +145,11 @@ class SquashedPolicy(Policy):
     def forward(self, x: Tensor) -> Tensor:
         """Squashed actions `... x F` for features `... x D`."""
         return sin_squash(self.policy(x), self.action_bound.to(x))
+
+    def actions(self) -> Callable[[Tensor], Tensor]:
+        """The wrapped policy's ``actions()``, squashed."""
+        inner = self.policy.actions()
+        return lambda x: sin_squash(inner(x), self.action_bound.to(x))
 
     def prepare(self) -> GaussianMap:
         """The wrapped policy's moments, then exact squashing moments, chained (PILCO conCat); weights made once."""

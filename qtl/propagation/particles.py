@@ -306,9 +306,10 @@ class Particles:
         if functions is not None and self.include_noise:
             noise_steps = self._noise_std[..., None, :] * step_noise.view(
                 horizon, *(1,) * (self._noise_std.dim() - 1), *step_noise.shape[1:])
+        act = self.policy.actions()  # ψ-only quantities once per rollout
         for t in range(horizon):
             y = self.features(x)  # ... x P x (D + K), exact per particle
-            u = self.policy(y)  # ... x P x F
+            u = act(y)  # ... x P x F
             z = torch.cat([y, u], dim=-1)[..., None, :, :] * self._inv_lengthscales  # ... x E x P x D_in
             if functions is None:
                 mean, var = gp_predictive(z, self._data, self._data_sq, self._beta, self._K_inv,

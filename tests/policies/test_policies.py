@@ -16,6 +16,7 @@ from qtl.policies import (
     LinearPolicy,
     RBFPolicy,
     SquashedPolicy,
+    batched_policy,
     sin_squash,
     sin_squash_moments,
 )
@@ -245,3 +246,20 @@ def test_squashed_policy_moments_formulations_agree(inner, restarts):
         return out.mean, out.cov, out.cross_cov, out.gain
 
     assert_formulations_agree(moments, (mean, root, *policy.parameters()))
+
+
+@pytest.mark.parametrize("kind", ["rbf", "squashed-rbf", "linear"])
+def test_actions_map_equals_forward_bit_for_bit(kind):
+    """actions() computes ψ-only quantities once (RBF: β_π) and then acts exactly as forward, batched ψ too."""
+    policy = make_policy(kind)
+    x = torch.randn(7, policy.input_dim, dtype=torch.float64, generator=torch.Generator().manual_seed(3))
+    assert torch.equal(policy.actions()(x), policy(x))
+    batched = batched_policy(policy, 3)
+    xb = torch.randn(3, 7, policy.input_dim, dtype=torch.float64, generator=torch.Generator().manual_seed(4))
+    assert torch.equal(batched.actions()(xb), batched(xb))
+    if kind != "linear":  # β_π is solved once: the map keeps ψ's values of the moment it was made
+        act = policy.actions()
+        before = act(x)
+        with torch.no_grad():
+            next(p for n, p in policy.named_parameters() if n.endswith("targets")).add_(1.0)
+        assert torch.equal(act(x), before) and not torch.equal(policy(x), before)
