@@ -366,7 +366,7 @@ def old_matheron_paths(draw: FeatureDraw, cache: GPPosteriorCache) -> MatheronPa
     """Matheron's rule as first written, all in float64: the bits ``dtype=float64`` must keep."""
     theta = cache.hyperparameters
     data, _, _ = scaled(cache)
-    frequencies, phases, weights, update_noise = draw
+    frequencies, phases, weights, update_noise = (t.to(DTYPE) for t in draw)  # drawn in float32 (DRAW_DTYPE)
     weights = (2.0 * theta.signal_variance / frequencies.shape[-2]).sqrt()[..., None, None] * weights
     prior_at_data = torch.cos(data @ frequencies.mT + phases[..., None, :]) @ weights.mT
     residual = prior_at_data + theta.noise_variance.sqrt()[..., None, None] * update_noise
