@@ -22,8 +22,12 @@ from qtl.build import build, transfer_plan
 from qtl.checkpoint import latest_checkpoint, load_checkpoint, refuse_existing_run, save_checkpoint, set_rng_state
 from qtl.data import TransitionDataset
 from qtl.episodes import one_step_smse, prediction_figure, random_actor, run_episode
+from qtl.gaussian import Gaussian
 from qtl.models import GPHyperparameters, PreviousFit, log_evidence
+from qtl.policy_search import SearchResult
+from qtl.propagation import Propagator
 from qtl.recorder import BASE_COLUMNS, THETA_P_PREFIX, RunRecorder, theta_columns, theta_row
+from qtl.rewards import ExpectedSaturatingReward
 from qtl.seeding import (
     ACTION_STREAM,
     ENV_STREAM,
@@ -125,11 +129,7 @@ def run(cfg: DictConfig, output_dir: Path, *, resume: bool = False) -> RunResult
                                              generator=torch_generator(cfg.seed, episode, SEARCH_STREAM),
                                              tick=functools.partial(evals.update, 1))
                     search_s = time.perf_counter() - tic
-                    predicted = found.value
-                    if getattr(propagator, "search_reward", parts.reward) is not parts.reward:
-                        # a wider search reward (propagation.reward_width_scale): predict under the task's own
-                        with torch.no_grad():
-                            predicted = float(propagator.rollout(start, task.horizon).value)
+                    predicted = predicted_return(propagator, found, parts.reward, start, task.horizon)
 
                     # -- Lines 10-11: apply π(ψ) on the real system to obtain more tuples. ---------
                     real = run_episode(env, task, parts.actor(policy), derive_seed(cfg.seed, episode, ENV_STREAM))
@@ -184,6 +184,20 @@ def run(cfg: DictConfig, output_dir: Path, *, resume: bool = False) -> RunResult
         predicted_returns=[float(r["predicted_return"]) for r in recorder.rows],
         successes=[bool(int(r["success"])) for r in recorder.rows],
     )
+
+
+def predicted_return(
+    propagator: Propagator, found: SearchResult, reward: ExpectedSaturatingReward, start: Gaussian, horizon: int
+) -> float:
+    """V^π of the found ψ under the task's ``reward`` (Eq. 4): the search's value, or a rollout if it searched another.
+
+    A propagator whose ``search_reward`` is not the task's (``propagation.reward_width_scale``) valued ψ
+    under that wider reward; the recorded prediction is then one more rollout, scored by the task's reward.
+    """
+    if getattr(propagator, "search_reward", reward) is reward:
+        return found.value
+    with torch.no_grad():
+        return float(propagator.rollout(start, horizon).value)
 
 
 def _resume_point(output_dir: Path, resume: bool) -> dict[str, Any] | None:

@@ -12,9 +12,13 @@ from omegaconf import OmegaConf
 
 from qtl.checkpoint import latest_checkpoint, load_checkpoint
 from qtl.errors import CheckpointError, TaskError
-from qtl.loop import run
+from qtl.gaussian import Gaussian
+from qtl.loop import predicted_return, run
+from qtl.policy_search import SearchResult
+from qtl.propagation import Particles
 from qtl.train import resume_config
 from tests.helpers import tiny_config
+from tests.propagation.test_particles import pendulum_parts
 
 
 def read_csv(path: Path) -> list[dict[str, str]]:
@@ -136,3 +140,18 @@ def test_a_run_checkpointed_before_the_model_group_resumes_as_model_auto(tmp_pat
     assert resumed.model._target_ == "qtl.models.AutoFit"
     run(resumed, split, resume=True)
     assert (split / "metrics.csv").read_text() == (tmp_path / "whole" / "metrics.csv").read_text()
+
+
+def test_predicted_return_is_under_the_task_reward_when_the_search_used_a_wider_one(gp_factory):
+    """predicted_return: the search's own value for the task's reward, else a rollout scored by the task's reward."""
+    gp, policy, reward = pendulum_parts(gp_factory)
+    start = Gaussian(torch.tensor([0.1, 2.5, -0.2], dtype=torch.float64), 0.05 * torch.eye(3, dtype=torch.float64))
+    found = SearchResult(value=123.0, evaluations=1, run_values=[123.0], rollouts=1)
+    same = Particles(gp, policy, reward, angle_dims=(1,), num_particles=30, seed=6)
+    assert predicted_return(same, found, reward, start, 5) == 123.0  # the search valued ψ under the task's reward
+    wide = Particles(gp, policy, reward, angle_dims=(1,), num_particles=30, seed=6, reward_width_scale=4.0)
+    with torch.no_grad():
+        searched = float(wide.expected_return(start, 5))  # the objective: the wider reward
+        task_value = float(same.rollout(start, 5).value)  # the same draw (CRN), the task's reward
+    got = predicted_return(wide, found, reward, start, 5)
+    assert got == pytest.approx(task_value, rel=1e-12) and got < searched
