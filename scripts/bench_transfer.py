@@ -21,6 +21,8 @@ overrides for every target run.
     python scripts/bench_transfer.py [override ...] [--seeds 0 1 2 3 4] [--episodes 9] [--jobs 2]
         [--approaches pilco qtl_bayesian qtl_gamma_09 | all]
     python scripts/bench_transfer.py optimizer.restarts=1 --episodes 7 --approaches all  # the paper's 7 approaches
+    python scripts/bench_transfer.py recipe=mc_pilco --tag particles --sources runs/bench_cartpole/cartpole-particles \
+        --source-episodes 9 --source-overrides recipe=mc_pilco --approaches pilco qtl_bayesian  # particles
 """
 
 from __future__ import annotations
@@ -70,9 +72,9 @@ def stats(values: list[float], digits: int = 1) -> str:
     return f"{statistics.mean(values):.{digits}f} ± {statistics.stdev(values):.{digits}f}"
 
 
-def result_names(mass: float) -> tuple[str, str]:
-    """The JSON file and docs section of a target mass: the headline 2.0 kg plain, others suffixed."""
-    suffix = "" if mass == DEFAULT_MASS else f"-m{mass:g}"
+def result_names(mass: float, tag: str = "") -> tuple[str, str]:
+    """The JSON file and docs section of a target mass (and ``--tag``): the headline 2.0 kg plain, others suffixed."""
+    suffix = ("" if mass == DEFAULT_MASS else f"-m{mass:g}") + (f"-{tag}" if tag else "")
     return f"transfer{suffix}.json", f"bench_transfer{suffix}"
 
 
@@ -84,8 +86,15 @@ def main() -> None:
     parser.add_argument("--approaches", nargs="+", default=DEFAULT_APPROACHES, choices=[*APPROACHES, "all"])
     parser.add_argument("--jobs", type=int, default=2, help="runs in parallel (one torch thread each)")
     parser.add_argument("--sources", type=Path, default=benchlib.ROOT / "runs" / "bench_cartpole" / "cartpole")
-    parser.add_argument("--runs-dir", type=Path, default=benchlib.ROOT / "runs" / "bench_transfer")
+    parser.add_argument("--runs-dir", type=Path, help="default: runs/bench_transfer[-<tag>]")
+    parser.add_argument("--source-episodes", type=int, default=SOURCE_EPISODES,
+                        help="learned episodes of a source run (bench_cartpole's --within − 1)")
+    parser.add_argument("--source-overrides", nargs="*", default=[],
+                        help="Hydra overrides of the source runs, as bench_cartpole made them (e.g. recipe=mc_pilco)")
+    parser.add_argument("--tag", default="", help="names the result files, section and runs directory (e.g. particles)")
     args, overrides = parser.parse_known_args()
+    if args.runs_dir is None:
+        args.runs_dir = benchlib.ROOT / "runs" / ("bench_transfer" + (f"-{args.tag}" if args.tag else ""))
     approaches = [slug for slug in APPROACHES if slug in args.approaches or "all" in args.approaches]
 
     def source(seed: int) -> Path:
@@ -95,7 +104,8 @@ def main() -> None:
         return args.runs_dir / TARGET_DIR / slug / f"m{args.mass}" / f"{SEED_PREFIX}{seed}"
 
     def make_source(seed: int) -> float:
-        return ensure_run([f"seed={seed}", f"episodes={SOURCE_EPISODES}"], source(seed), SOURCE_EPISODES + 1)
+        return ensure_run([f"seed={seed}", f"episodes={args.source_episodes}", *args.source_overrides], source(seed),
+                          args.source_episodes + 1)
 
     def target(job: tuple[str, int]) -> tuple[str, int, float]:
         slug, seed = job
@@ -139,7 +149,7 @@ def main() -> None:
             "overrides": overrides, "episodes_per_run": budget, "target_pole_mass": args.mass,
             "sources": str(args.sources), "required": "QTL median episodes to success < PILCO's", "passed": passed,
             "results": results}
-    json_name, section = result_names(args.mass)
+    json_name, section = result_names(args.mass, args.tag)
     out = benchlib.ROOT / "docs" / "bench" / json_name
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(info, indent=2) + "\n")
@@ -148,12 +158,13 @@ def main() -> None:
     verdict = ("not judged: fewer than 5 seeds or no PILCO baseline" if not judged else
                "; ".join(f"{name}: {'met' if ok else 'NOT met'}" for name, ok in passed.items()))
     lines = [
-        f"## Transfer: cart-pole 0.5 kg → {args.mass} kg",
+        f"## Transfer: cart-pole 0.5 kg → {args.mass} kg" + (f" ({args.tag})" if args.tag else ""),
         "",
         f"`{info['command']}` — {info['date']}, {m['cpu']} ({m['cores']} cores), {args.jobs} runs in parallel with "
         f"1 torch thread each, torch {m['torch']}. {budget} episodes per target run (1 initial + {args.episodes} "
-        f"learned); sources: the 0.5 kg benchmark runs of the same seeds ({SOURCE_EPISODES + 1} episodes, "
-        f"default settings). Target overrides: `{' '.join(overrides) or 'none'}`. Success: tip within 0.15 m of the "
+        f"learned); sources: the 0.5 kg benchmark runs of the same seeds ({args.source_episodes + 1} episodes, "
+        f"overrides: `{' '.join(args.source_overrides) or 'none'}`). Target overrides: "
+        f"`{' '.join(overrides) or 'none'}`. Success: tip within 0.15 m of the "
         "target for the last 2 s; episode 0 is the initial one (random for PILCO, ψ_s for QTL). AUC: trapezoid "
         f"over the {budget} episodes. Results: `docs/bench/{out.name}`.",
         "",

@@ -49,3 +49,7 @@ def test_each_target_mass_keeps_its_own_results():
     assert bench_transfer.result_names(2.0) == ("transfer.json", "bench_transfer")
     assert bench_transfer.result_names(1.5) == ("transfer-m1.5.json", "bench_transfer-m1.5")
     assert bench_transfer.result_names(0.8) == ("transfer-m0.8.json", "bench_transfer-m0.8")
+    # A tag (e.g. the particle recipe's runs) keeps its own results beside the moment-matching ones.
+    assert bench_transfer.result_names(2.0, "particles") == ("transfer-particles.json", "bench_transfer-particles")
+    assert bench_transfer.result_names(1.5, "particles") == ("transfer-m1.5-particles.json",
+                                                             "bench_transfer-m1.5-particles")
