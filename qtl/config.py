@@ -453,15 +453,21 @@ class TransferConfig:
         default=None, metadata=doc("below this task compliance (Eq. 14), fall back to PILCO"),
     )
     compliance: str = field(
-        default="likelihood_ratio",
-        metadata=doc("likelihood_ratio | kernel: Eq. 14 as a tempered source-vs-target likelihood ratio, or after "
-                     "Lazaric et al.'s kernel estimate with the source GP's predictive (docs/compliance.md)"),
+        default="kernel",
+        metadata=doc("kernel | likelihood_ratio: Eq. 14 after Lazaric et al.'s kernel estimate, the source GP's "
+                     "predictive smoothed by Scott's bandwidth, or as a tempered source-vs-target likelihood ratio "
+                     "(docs/compliance.md)"),
     )
     compliance_temperature: Optional[float] = field(  # noqa: UP045
         default=None, metadata=doc("κ of Eq. 14 (null: the state dimension; likelihood_ratio only)"),
     )
     compliance_resolution: float = field(
         default=0.0, metadata=doc("ρ: compare at ρ × each output's spread of Δ (0: exact)"),
+    )
+    compliance_bandwidth: str = field(
+        default="scott",
+        metadata=doc("scott | none: the kernel compliance's density bandwidth, Scott's rule on the source's Δ "
+                     "(kernel only; docs/compliance.md)"),
     )
 
 

@@ -17,17 +17,25 @@ Two estimates live here. :func:`kernel_compliance` follows that definition with 
 place of the kernel regression: its predictive mean replaces the weighted source displacements,
 its predictive variance (noise included) is the kernel's width, and λ_i is the source predictive
 density of Δ_i relative to its mode, a value in (0, 1] that is 1 where the source predicts Δ_i
-exactly. :func:`task_compliance` (the default) compares two hypotheses with equal prior instead:
+exactly; it is the default. :func:`task_compliance` compares two hypotheses with equal prior instead:
 the source GP generated Δ_j (its predictive, noise included) or the target GP did (its
 leave-one-out predictive, so that the target does not explain its own data trivially); Λ is the
 mean over j of the tempered posterior probability of the source hypothesis.
+
+The kernel estimate's width. Lazaric et al.'s transition factor is a kernel density estimate of
+the target's displacement from the source's displacements, and a kernel density estimate needs a
+bandwidth. :func:`kernel_compliance` takes Scott's rule (``bandwidth="scott"``, the default, as
+``scipy.stats.gaussian_kde``): h_a = σ̂_a m^(−1/(E+4)), σ̂_a the standard deviation of output a's
+Δ over the source's m tuples; smoothing the source GP's predictive N(μ, v) with N(0, h_a²) gives
+N(μ, v + h_a²). It depends on the source's data only, so one scale serves every target.
+``bandwidth="none"`` keeps the GP's predictive alone: on our near-deterministic simulators v is
+tiny and Λ is then near 0 on every target but the source task itself (``docs/compliance.md``).
 
 On near-deterministic simulators both predictive variances are tiny, each tuple's log-likelihood
 ratio is in the hundreds and the two-hypothesis Λ saturates at 0 or 1 whatever κ. ``resolution``
 ρ compares at a finite resolution instead: ρ² s_a² (s_a the standard deviation of output a's Δ
 over the target tuples) is added to every predictive variance, so that a source prediction off by
-less than about ρ s_a counts as explaining the tuple. The kernel estimate at ρ = 0 separates the
-source task from others but is near 0 on near targets as well (``docs/compliance.md``).
+less than about ρ s_a counts as explaining the tuple.
 """
 
 from __future__ import annotations
@@ -135,46 +143,74 @@ class KernelCompliance:
 
     ``value``: Λ, the mean of ``probabilities``; ``probabilities``: `n`, λ_i ∝ P(S | τ_i), each in
     (0, 1]; ``log_kernel``: `n x E`, log of output a's kernel factor of tuple i, −(Δ_ia − μ_ia)² / (2 v_ia);
+    ``bandwidth``: `E`, h_a, the kernel density estimate's bandwidth per output (zeros for ``"none"``);
     ``resolution``: ρ.
     """
 
     value: float
     probabilities: Tensor
     log_kernel: Tensor
+    bandwidth: Tensor
     resolution: float = 0.0
 
 
-def kernel_compliance(source: DynamicsGP, target: DynamicsGP, *, resolution: float = 0.0) -> KernelCompliance:
+# The kernel density estimate's bandwidth rules of :func:`kernel_compliance`.
+BANDWIDTHS = ("scott", "none")
+
+
+def scott_bandwidth(deltas: Tensor) -> Tensor:
+    """h_a = σ̂_a m^(−1/(E+4)), `E`: Scott's rule on the source's displacements `m x E` (scipy's gaussian_kde)."""
+    m, num_outputs = deltas.shape
+    if m < 2:
+        return torch.zeros_like(deltas[0])
+    return deltas.std(dim=0, correction=1) * m ** (-1.0 / (num_outputs + 4))
+
+
+def _check_bandwidth(bandwidth: str) -> None:
+    """Raise unless ``bandwidth`` names one of :data:`BANDWIDTHS` (Eq. 14)."""
+    if bandwidth not in BANDWIDTHS:
+        raise ValueError(f"bandwidth must be one of {', '.join(BANDWIDTHS)}, got {bandwidth!r}")
+
+
+def kernel_compliance(
+    source: DynamicsGP, target: DynamicsGP, *, bandwidth: str = "scott", resolution: float = 0.0
+) -> KernelCompliance:
     """Task compliance Λ after Lazaric et al., the source GP standing for their kernel estimate (Eq. 14).
 
-    λ_i = Π_a exp(−(Δ_ia − μ_a(z_i))² / (2 v_a(z_i))): the source GP's predictive mean μ and
-    variance v (noise included, plus ρ² s_a² at resolution ρ) stand for the source tuples' weighted
-    displacements and the kernel width. Λ = mean over i of λ_i, the prior P(S) = 1 of a single
-    source. For target tuples of the source task itself and a calibrated source, E[λ_i] = 2^(−E/2).
+    λ_i = Π_a exp(−(Δ_ia − μ_a(z_i))² / (2 (v_a(z_i) + h_a²))): the source GP's predictive mean μ
+    and variance v (noise included, plus ρ² s_a² at resolution ρ) stand for the source tuples' weighted
+    displacements and their spread, h_a is the kernel's bandwidth (Scott's rule on the source's Δ, or
+    0 for ``"none"``). Λ = mean over i of λ_i, the prior P(S) = 1 of a single source. Without a
+    bandwidth, for target tuples of the source task itself and a calibrated source, E[λ_i] = 2^(−E/2).
     """
     _check_dimensions(source, target)
+    _check_bandwidth(bandwidth)
     _check_resolution(resolution)
 
     inputs, deltas = target.train_x, target.train_y  # n x D, n x E
     floor = _resolution_floor(deltas, resolution)  # E
+    source_deltas = source.train_y.to(deltas)  # m x E
+    width = scott_bandwidth(source_deltas) if bandwidth == "scott" else torch.zeros_like(source_deltas[0])  # E
     mean, variance = source.predict(inputs, include_noise=True)  # n x E each
-    mean, variance = mean.to(deltas), variance.to(deltas) + floor
+    mean, variance = mean.to(deltas), variance.to(deltas) + floor + width.square()
     log_kernel = -0.5 * (deltas - mean).square() / variance  # n x E: log p_S(Δ_ia) − log p_S(μ_ia)
     probabilities = log_kernel.sum(-1).exp()  # n: λ_i, the kernels of the E outputs multiplied
     return KernelCompliance(
         value=float(probabilities.mean()),
         probabilities=probabilities,
         log_kernel=log_kernel,
+        bandwidth=width,
         resolution=float(resolution),
     )
 
 
-# The compliances by name; "likelihood_ratio" stays the default until the benchmark has measured "kernel".
+# The compliances by name; "kernel" (Lazaric et al.'s definition, Scott's bandwidth) is the default since
+# scripts/bench_compliance.py measured it (docs/compliance.md); "likelihood_ratio" is the earlier estimate.
 COMPLIANCES: dict[str, Callable[..., Compliance | KernelCompliance]] = {
     "likelihood_ratio": task_compliance,
     "kernel": kernel_compliance,
 }
-DEFAULT_COMPLIANCE = "likelihood_ratio"
+DEFAULT_COMPLIANCE = "kernel"
 
 
 def compliance_function(name: str = DEFAULT_COMPLIANCE) -> Callable[..., Compliance | KernelCompliance]:

@@ -14,7 +14,13 @@ from qtl.errors import TransferError
 from qtl.features import AngleFeatures
 from qtl.models import DynamicsGP, GPHyperparameters
 from qtl.task import Task
-from qtl.transfer.compliance import COMPLIANCES, kernel_compliance, task_compliance
+from qtl.transfer.compliance import (
+    BANDWIDTHS,
+    COMPLIANCES,
+    DEFAULT_COMPLIANCE,
+    kernel_compliance,
+    task_compliance,
+)
 from qtl.transfer.rules import HyperparameterRule
 from qtl.transfer.source import SourceRun
 
@@ -45,7 +51,8 @@ class TransferPlan:
         self.min_compliance = cfg.get("min_compliance")
         self.temperature = cfg.get("compliance_temperature")
         self.resolution = float(cfg.get("compliance_resolution") or 0.0)
-        self.compliance_name = str(cfg.get("compliance") or "likelihood_ratio")
+        self.compliance_name = str(cfg.get("compliance") or DEFAULT_COMPLIANCE)
+        self.bandwidth = str(cfg.get("compliance_bandwidth") or "scott")
         source_dir = cfg.get("source")
         if source_dir is None:
             if rule.uses_source:
@@ -74,6 +81,9 @@ class TransferPlan:
         if self.compliance_name not in COMPLIANCES:
             raise TransferError(f"transfer.compliance must be one of {', '.join(sorted(COMPLIANCES))}, "
                                 f"got {self.compliance_name!r}")
+        if self.bandwidth not in BANDWIDTHS:
+            raise TransferError(f"transfer.compliance_bandwidth must be one of {', '.join(BANDWIDTHS)}, "
+                                f"got {self.bandwidth!r}")
         if self.compliance_name == "kernel" and self.temperature is not None:
             raise TransferError("transfer.compliance_temperature tempers the likelihood ratio only: unset it, or set "
                                 "transfer.compliance=likelihood_ratio")
@@ -103,7 +113,8 @@ class TransferPlan:
         if self._source_model is None:
             return math.nan
         if self.compliance_name == "kernel":
-            return kernel_compliance(self._source_model, target, resolution=self.resolution).value
+            return kernel_compliance(self._source_model, target, bandwidth=self.bandwidth,
+                                     resolution=self.resolution).value
         return task_compliance(self._source_model, target, temperature=self.temperature,
                                resolution=self.resolution).value
 

@@ -15,6 +15,7 @@ from qtl.transfer.compliance import (
     KernelCompliance,
     compliance_function,
     kernel_compliance,
+    scott_bandwidth,
     task_compliance,
 )
 
@@ -40,7 +41,7 @@ def _predictive_sd(model: DynamicsGP) -> torch.Tensor:
 @SAME_INPUTS
 def test_terms_are_the_source_density_relative_to_its_mode(gp_factory) -> None:
     source, target = gp_factory(40, 2, 1, seed=0), gp_factory(30, 2, 1, seed=1, lengthscale=1.0)
-    result = kernel_compliance(source, target)
+    result = kernel_compliance(source, target, bandwidth="none")
     assert isinstance(result, KernelCompliance)
     assert result.log_kernel.shape == (30, 2) and result.probabilities.shape == (30,)
     assert result.log_kernel.dtype == result.probabilities.dtype == DTYPE
@@ -53,7 +54,7 @@ def test_terms_are_the_source_density_relative_to_its_mode(gp_factory) -> None:
     assert ((result.probabilities > 0) & (result.probabilities <= 1)).all()
     assert result.value == pytest.approx(result.probabilities.mean().item(), abs=1e-14)
     # A tuple the source predicts exactly has compliance 1.
-    exact = kernel_compliance(source, _with_data(source, target.train_x, mean))
+    exact = kernel_compliance(source, _with_data(source, target.train_x, mean), bandwidth="none")
     torch.testing.assert_close(exact.probabilities, torch.ones(30, dtype=DTYPE), rtol=0, atol=1e-12)
 
 
@@ -67,7 +68,7 @@ def test_tuples_of_the_source_task_give_two_to_the_minus_half_e(gp_factory, stat
     inputs = torch.randn(n, source.input_dim, generator=gen, dtype=DTYPE)
     mean, var = source.predict(inputs, include_noise=True)
     deltas = mean + var.sqrt() * torch.randn(n, state_dim, generator=gen, dtype=DTYPE)
-    result = kernel_compliance(source, _with_data(source, inputs, deltas))
+    result = kernel_compliance(source, _with_data(source, inputs, deltas), bandwidth="none")
 
     expected = 2.0 ** (-state_dim / 2)
     standard_error = math.sqrt((3.0 ** (-state_dim / 2) - expected**2) / n)
@@ -93,7 +94,7 @@ def test_identical_data_give_the_expected_compliance_of_a_gp_on_its_own_tuples(g
     for _ in range(150):
         y = (root @ torch.randn(theta.num_outputs, inputs.shape[0], 1, generator=gen, dtype=DTYPE)).squeeze(-1).T
         model = DynamicsGP(inputs, y, theta)
-        values.append(kernel_compliance(model, model).value)
+        values.append(kernel_compliance(model, model, bandwidth="none").value)
     values_t = torch.tensor(values, dtype=DTYPE)
     standard_error = values_t.std().item() / math.sqrt(len(values))
     assert abs(values_t.mean().item() - expected) < MC_STANDARD_ERRORS * standard_error, (values_t.mean(), expected)
@@ -103,9 +104,9 @@ def test_identical_data_give_the_expected_compliance_of_a_gp_on_its_own_tuples(g
 @SAME_INPUTS
 def test_a_shift_beyond_the_predictive_spread_lowers_compliance(gp_factory) -> None:
     source = gp_factory(40, 2, 1, seed=0)
-    same = kernel_compliance(source, source).value
+    same = kernel_compliance(source, source, bandwidth="none").value
     shifted = _with_data(source, source.train_x, source.train_y + 3.0 * _predictive_sd(source))
-    far = kernel_compliance(source, shifted).value
+    far = kernel_compliance(source, shifted, bandwidth="none").value
     assert same > 0.5
     # Three predictive standard deviations in each of two outputs: λ ≈ exp(−9) per tuple.
     assert far < 0.05 * same, (same, far)
@@ -117,13 +118,14 @@ def test_compliance_falls_monotonically_with_the_shift(gp_factory, state_dim: in
     source = gp_factory(40, state_dim, 1, seed=2)
     sd = _predictive_sd(source)
     values = [
-        kernel_compliance(source, _with_data(source, source.train_x, source.train_y + c * sd)).value
+        kernel_compliance(source, _with_data(source, source.train_x, source.train_y + c * sd), bandwidth="none").value
         for c in (0.0, 0.5, 1.0, 1.5, 2.0, 3.0, 4.0)
     ]
     for nearer, farther in itertools.pairwise(values):
         assert farther < nearer, values
     # A shift of the opposite sign lowers it as well.
-    assert kernel_compliance(source, _with_data(source, source.train_x, source.train_y - sd)).value < values[0]
+    opposite = _with_data(source, source.train_x, source.train_y - sd)
+    assert kernel_compliance(source, opposite, bandwidth="none").value < values[0]
 
 
 def test_invariant_to_the_order_of_the_tuples(gp_factory) -> None:
@@ -139,21 +141,80 @@ def test_invariant_to_the_order_of_the_tuples(gp_factory) -> None:
 def test_resolution_widens_the_kernel_by_the_documented_floor(gp_factory) -> None:
     source, target = gp_factory(40, 2, 1, seed=0), gp_factory(30, 2, 1, seed=1, lengthscale=1.0)
     rho = 0.2
-    result = kernel_compliance(source, target, resolution=rho)
+    result = kernel_compliance(source, target, bandwidth="none", resolution=rho)
     assert result.resolution == rho
     mean, var = source.predict(target.train_x, include_noise=True)
     floor = rho**2 * target.train_y.var(dim=0, correction=0)
     torch.testing.assert_close(
         result.log_kernel, -0.5 * (target.train_y - mean).square() / (var + floor), rtol=1e-10, atol=1e-12
     )
-    assert result.value > kernel_compliance(source, target).value
+    assert result.value > kernel_compliance(source, target, bandwidth="none").value
     assert kernel_compliance(source, target, resolution=1e4).value == pytest.approx(1.0, abs=1e-6)
+
+
+# ---- the bandwidth: Scott's rule on the source's Δ ----------------------------------------------
+def test_scott_bandwidth_is_scipys_gaussian_kde_bandwidth() -> None:
+    scipy_stats = pytest.importorskip("scipy.stats")
+    gen = torch.Generator().manual_seed(3)
+    for m, num_outputs in ((50, 1), (200, 2), (400, 4)):
+        deltas = torch.randn(m, num_outputs, generator=gen, dtype=DTYPE) * torch.linspace(0.1, 3.0, num_outputs)
+        kde = scipy_stats.gaussian_kde(deltas.T.numpy(), bw_method="scott")
+        want = torch.as_tensor(kde.covariance, dtype=DTYPE).diagonal().sqrt()  # σ̂_a × scipy's Scott factor
+        torch.testing.assert_close(scott_bandwidth(deltas), want, rtol=1e-12, atol=0)
+    assert (scott_bandwidth(deltas[:1]) == 0).all()  # one tuple: no spread to smooth with
+
+
+def test_bandwidth_widens_the_predictive_by_the_source_bandwidth(gp_factory) -> None:
+    source, target = gp_factory(40, 2, 1, seed=0), gp_factory(30, 2, 1, seed=1, lengthscale=1.0)
+    result = kernel_compliance(source, target)  # bandwidth="scott", the default
+    h = scott_bandwidth(source.train_y)
+    torch.testing.assert_close(result.bandwidth, h, rtol=0, atol=0)
+    mean, var = source.predict(target.train_x, include_noise=True)
+    torch.testing.assert_close(
+        result.log_kernel, -0.5 * (target.train_y - mean).square() / (var + h.square()), rtol=1e-10, atol=1e-12
+    )
+    assert result.value > kernel_compliance(source, target, bandwidth="none").value
+    assert (kernel_compliance(source, target, bandwidth="none").bandwidth == 0).all()
+    # The width is the source's: other target tuples leave it unchanged.
+    other = _with_data(target, target.train_x, 5.0 * target.train_y)
+    torch.testing.assert_close(kernel_compliance(source, other).bandwidth, h, rtol=0, atol=0)
+
+
+def test_bandwidth_is_the_kernel_density_smoothing_of_the_source_predictive(gp_factory) -> None:
+    # λ_ia = [N(0, h²) * N(μ, v)](Δ) / its value at the mode: the Gaussian smoothing of the source's
+    # predictive by the kernel, checked by averaging N(Δ; μ + ε, v) over ε ~ N(0, h²).
+    source, target = gp_factory(40, 2, 1, seed=0), gp_factory(6, 2, 1, seed=1, lengthscale=1.0)
+    result = kernel_compliance(source, target)
+    mean, var = source.predict(target.train_x, include_noise=True)  # 6 x 2 each
+    h = result.bandwidth
+    draws = 200_000
+    eps = h * torch.randn(draws, 1, 2, generator=torch.Generator().manual_seed(9), dtype=DTYPE)
+    smoothed = torch.distributions.Normal(mean + eps, var.sqrt()).log_prob(target.train_y).exp()  # draws x 6 x 2
+    at_mode = (2 * math.pi * (var + h.square())).rsqrt()  # the smoothed density's peak, N(μ; μ, v + h²)
+    estimate = smoothed.mean(0) / at_mode
+    standard_error = smoothed.std(0) / math.sqrt(draws) / at_mode
+    deviation = (estimate - result.log_kernel.exp()).abs()
+    assert (deviation < MC_STANDARD_ERRORS * standard_error).all(), (deviation / standard_error)
+
+
+@SAME_INPUTS
+def test_with_the_bandwidth_compliance_falls_monotonically_with_the_shift(gp_factory) -> None:
+    source = gp_factory(40, 3, 1, seed=2)
+    h = scott_bandwidth(source.train_y)
+    values = [
+        kernel_compliance(source, _with_data(source, source.train_x, source.train_y + c * h)).value
+        for c in (0.0, 0.5, 1.0, 2.0, 4.0)
+    ]
+    for nearer, farther in itertools.pairwise(values):
+        assert farther < nearer, values
+    assert 0.05 < values[2] < 0.95, values  # a shift of one bandwidth is not saturated
 
 
 # ---- selection and input checks -----------------------------------------------------------------
 def test_selection_by_name_keeps_the_default() -> None:
-    assert DEFAULT_COMPLIANCE == "likelihood_ratio"
-    assert compliance_function() is task_compliance
+    assert DEFAULT_COMPLIANCE == "kernel"
+    assert compliance_function() is kernel_compliance
+    assert compliance_function("likelihood_ratio") is task_compliance
     assert compliance_function("kernel") is kernel_compliance
     assert set(COMPLIANCES) == {"likelihood_ratio", "kernel"}
     with pytest.raises(ValueError, match="unknown task compliance 'lazaric'"):
@@ -174,6 +235,13 @@ def test_mismatched_dimensions_raise(gp_factory, monkeypatch) -> None:
     _forbid_work(monkeypatch)
     with pytest.raises(ValueError, match="source GP has D=3 inputs and E=2 outputs, target GP has D=4 inputs"):
         kernel_compliance(source, target)
+
+
+def test_bad_bandwidth_raises(gp_factory, monkeypatch) -> None:
+    source, target = gp_factory(10, 2, 1, seed=0), gp_factory(10, 2, 1, seed=1)
+    _forbid_work(monkeypatch)
+    with pytest.raises(ValueError, match="bandwidth must be one of scott, none, got 'silverman'"):
+        kernel_compliance(source, target, bandwidth="silverman")
 
 
 @pytest.mark.parametrize("resolution", [-0.1, float("nan"), float("inf")])

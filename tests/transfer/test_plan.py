@@ -75,16 +75,19 @@ def test_compliance_gate_drops_theta_s_for_good(finished_source):
 
 
 def test_transfer_compliance_chooses_the_compliance_the_gate_reads(finished_source):
-    """transfer.compliance=kernel: Λ after Lazaric et al. (kernel_compliance); the default: the likelihood ratio."""
+    """Default: Λ after Lazaric et al. (kernel_compliance, Scott's bandwidth); likelihood_ratio: task_compliance."""
     default = plan(Bayesian(), source=str(finished_source), compliance_resolution=0.1)
-    kernel = plan(Bayesian(), source=str(finished_source), compliance="kernel", compliance_resolution=0.1)
+    ratio = plan(Bayesian(), source=str(finished_source), compliance="likelihood_ratio", compliance_resolution=0.1)
+    exact = plan(Bayesian(), source=str(finished_source), compliance_bandwidth="none")
     source_model = default.source.model(FEATURES)
-    target = kernel.source.model(FEATURES)  # the source's own tuples as the target's
-    want_kernel = kernel_compliance(kernel.source.model(FEATURES), target, resolution=0.1).value
-    want_default = task_compliance(source_model, target, resolution=0.1).value
-    assert kernel.compliance(target) == pytest.approx(want_kernel, rel=1e-12)
-    assert default.compliance(target) == pytest.approx(want_default, rel=1e-12)
-    assert want_kernel != pytest.approx(want_default)
+    target = ratio.source.model(FEATURES)  # the source's own tuples as the target's
+    want_kernel = kernel_compliance(source_model, target, resolution=0.1).value
+    want_ratio = task_compliance(source_model, target, resolution=0.1).value
+    want_exact = kernel_compliance(source_model, target, bandwidth="none").value
+    assert default.compliance(target) == pytest.approx(want_kernel, rel=1e-12)
+    assert ratio.compliance(target) == pytest.approx(want_ratio, rel=1e-12)
+    assert exact.compliance(target) == pytest.approx(want_exact, rel=1e-12)
+    assert len({round(v, 9) for v in (want_kernel, want_ratio, want_exact)}) == 3
 
 
 def test_transferred_policy_is_psi_s(finished_source):
@@ -120,6 +123,8 @@ def test_bad_transfer_configs_fail_before_any_work(tmp_path, overrides, message)
         (["approach=qtl_bayesian", "transfer.min_compliance=1.5"], r"min_compliance must be in \[0, 1\]"),
         (["approach=qtl_bayesian", "transfer.compliance_resolution=-0.1"], "compliance_resolution must be >= 0"),
         (["approach=qtl_bayesian", "transfer.compliance=tip"], "transfer.compliance must be one of"),
+        (["approach=qtl_bayesian", "transfer.compliance_bandwidth=silverman"],
+         "transfer.compliance_bandwidth must be one of scott, none, got 'silverman'"),
         (["approach=qtl_bayesian", "transfer.compliance=kernel", "transfer.compliance_temperature=2"],
          "tempers the likelihood ratio only"),
         (["approach=policy_transfer", "task.policy_size=4"], "the source policy"),

@@ -1,0 +1,301 @@
+"""Benchmark — task compliance Λ (Eq. 14) per target, and the transfer gate that acts on it (issue 21).
+
+**Λ** (always): per family and seed, the source run of that seed and the target's initial episode
+exactly as the loop runs it for a θ-only transfer (random actions; action and env seeds derived from
+the run seed), then Λ of those tuples, i.e. the value the compliance gate reads at the first model:
+
+- ``kernel``: :func:`~qtl.transfer.compliance.kernel_compliance` with Scott's bandwidth (the gate's);
+- ``kernel, no bandwidth``: the source GP's predictive alone;
+- ``likelihood ratio``: :func:`~qtl.transfer.compliance.task_compliance`, the target GP fitted as the
+  loop fits its first model.
+
+Beside them, per target, the median over tuples (and seeds) of the largest per-output distance
+|Δ − μ| of a tuple in predictive standard deviations √v and in bandwidths h: why the exact densities
+saturate on our near-deterministic simulators.
+
+**Learning** (``--learn``, mountain car by default): per target and seed, PILCO, the θ-only transfer
+(``approach`` with ``transfer.policy=false``) and the same transfer with the gate
+``transfer.min_compliance=<--gate>``, each through the real CLI (``qtl.launch.ensure_run``: a finished run
+made by the same overrides is reused, an interrupted one resumed). The gate value is one per family,
+passed on the command line, chosen from the Λ table before these runs. Reported: first success per
+seed, AUC, final performance, Λ at the first model and the episode where a gated run fell back.
+
+Writes ``docs/bench/compliance.json`` and its sections of ``docs/benchmarks.md``.
+
+    python scripts/bench_compliance.py [--families mountaincar cartpole] [--seeds 0 1 2 3 4]
+    python scripts/bench_compliance.py --families mountaincar --learn --gate 0.5 --episodes 10 --jobs 2
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import itertools
+import json
+import statistics
+import sys
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from hydra import compose, initialize_config_module
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import benchlib
+
+from qtl.build import build
+from qtl.checkpoint import CHECKPOINT_DIR, load_checkpoint
+from qtl.config import register_configs
+from qtl.data import TransitionDataset
+from qtl.episodes import random_actor, run_episode
+from qtl.launch import ensure_run
+from qtl.metrics import Curve
+from qtl.seeding import ACTION_STREAM, ENV_STREAM, MODEL_STREAM, derive_seed, torch_generator
+from qtl.transfer.compliance import kernel_compliance, task_compliance
+from qtl.transfer.source import SourceRun
+
+
+@dataclass(frozen=True)
+class Family:
+    """A source task and its targets along one env parameter (``task.env.<axis>``)."""
+
+    task: str
+    axis: str
+    unit: str
+    source_value: float
+    near: tuple[float, ...]
+    far: tuple[float, ...]
+    sources: Path  # seed_<k> run directories of the source task
+
+    def label(self, value: float) -> str:
+        """A target's name in tables: '300 %' or '2.0 kg'."""
+        return f"{value * 100:g} %" if self.unit == "%" else f"{value:.1f} {self.unit}"
+
+
+FAMILIES = {
+    "mountaincar": Family("mountaincar", "power", "%", 1.0, (0.5, 1.5), (3.0,),
+                          benchlib.ROOT / "runs" / "experiments" / "mountaincar" / "source"),
+    "cartpole": Family("cartpole", "pole_mass", "kg", 0.5, (0.8, 1.0, 1.5, 2.0), (5.0,),
+                       benchlib.ROOT / "runs" / "bench_cartpole" / "cartpole-fast"),
+}
+ARMS = ("pilco", "transfer", "gated")  # the learning runs per target and seed
+
+
+def target_config(family: Family, value: float, seed: int, extra: list[str] | None = None):
+    """The composed ``train`` config of a target run (what ``qtl-train`` would run)."""
+    with initialize_config_module(config_module="qtl.configs", version_base="1.3"):
+        return compose(config_name="train", overrides=[f"task={family.task}", f"task.env.{family.axis}={value}",
+                                                       f"seed={seed}", *(extra or [])])
+
+
+def initial_compliance(family: Family, value: float, seed: int) -> dict:
+    """Λ of the target's initial (random) episode under the seed's source, three ways, and the tuples' distances."""
+    cfg = target_config(family, value, seed)
+    parts = build(cfg)
+    source = SourceRun.load(family.sources / f"seed_{seed}")
+    source.check_compatible(parts.task)
+    rng = np.random.default_rng(derive_seed(seed, 0, ACTION_STREAM))  # as the loop's episode 0
+    episode = run_episode(parts.task.make_env(), parts.task, random_actor(parts.task, rng),
+                          derive_seed(seed, 0, ENV_STREAM))
+    data = TransitionDataset(parts.task.state_dim, parts.task.action_dim, parts.task.angle_dims)
+    data.add_episode(episode.states, episode.actions)
+    target = parts.fit_dynamics(data, torch_generator(seed, 1, MODEL_STREAM))  # the loop's first model
+    source_model = source.model(parts.features)
+    kernel = kernel_compliance(source_model, target)
+    mean, var = source_model.predict(target.train_x, include_noise=True)
+    error = (target.train_y - mean).abs()  # n x E
+    return {
+        "seed": seed, "value": value, "tuples": len(data), "source_tuples": len(source.dataset),
+        "source_episode": source.episode,
+        "kernel": kernel.value,
+        "kernel_no_bandwidth": kernel_compliance(source_model, target, bandwidth="none").value,
+        "likelihood_ratio": task_compliance(source_model, target).value,
+        "bandwidth": kernel.bandwidth.tolist(),
+        "median_distance_in_predictive_sd": float((error / var.sqrt()).amax(-1).median()),
+        "median_distance_in_bandwidths": float((error / kernel.bandwidth).amax(-1).median()),
+    }
+
+
+def mean_std(values: list[float], digits: int = 2) -> str:
+    """Mean ± std over seeds."""
+    if len(values) < 2:
+        return f"{values[0]:.{digits}f}" if values else "—"
+    return f"{statistics.mean(values):.{digits}f} ± {statistics.stdev(values):.{digits}f}"
+
+
+def compliance_verdict(family: Family, rows: dict[float, list[dict]]) -> dict[str, bool]:
+    """The issue's requirements on Λ (kernel): near targets in (0.05, 0.95), ordered by the change, far lowest."""
+    means = {value: statistics.mean(r["kernel"] for r in rows[value]) for value in rows}
+    near = [means[v] for v in family.near]
+    verdict = {"near targets not saturated (0.05 < Λ < 0.95)": all(0.05 < m < 0.95 for m in near)}
+    ordered = sorted(family.near, key=lambda v: abs(v - family.source_value))
+    if family.axis == "pole_mass":
+        verdict["ordered by mass"] = all(means[a] > means[b] for a, b in itertools.pairwise(ordered))
+    verdict["far target lowest"] = all(means[f] < min(near) for f in family.far)
+    return verdict
+
+
+def compliance_section(
+    family: Family, rows: dict[float, list[dict]], verdict: dict[str, bool], seeds: list[int]
+) -> str:
+    """The Λ table of one family, markdown."""
+    first = rows[family.near[0]][0]
+    lines = [
+        f"## Task compliance: {family.task}, {family.label(family.source_value)} source",
+        "",
+        f"Sources: `{benchlib.display_path(family.sources)}/seed_<k>` (last checkpoint: episode "
+        f"{first['source_episode']} of seed {first['seed']}, m = {first['source_tuples']} tuples). Target tuples: "
+        f"each target's initial random episode of the same seed ({first['tuples']} tuples), what the gate reads at "
+        f"the first model. Seeds {', '.join(map(str, seeds))}; mean ± std over seeds.",
+        "",
+        "**Required: " + "; ".join(f"{k} — {'met' if ok else 'NOT met'}" for k, ok in verdict.items()) + ".**",
+        "",
+        "| target | Λ, kernel (Scott bandwidth) | per seed | Λ, kernel, no bandwidth | Λ, likelihood ratio "
+        "| median distance (predictive sd) | median distance (bandwidths) |",
+        "| --- | ---: | --- | ---: | ---: | ---: | ---: |",
+    ]
+    for value, per_seed in rows.items():
+        kind = " (far)" if value in family.far else (" (source task)" if value == family.source_value else "")
+        lines.append(
+            f"| {family.label(value)}{kind} | {mean_std([r['kernel'] for r in per_seed])} | "
+            + " ".join(f"{r['kernel']:.2f}" for r in per_seed)
+            + f" | {mean_std([r['kernel_no_bandwidth'] for r in per_seed], 3)} | "
+            f"{mean_std([r['likelihood_ratio'] for r in per_seed], 3)} | "
+            f"{statistics.median(r['median_distance_in_predictive_sd'] for r in per_seed):.1f} | "
+            f"{statistics.median(r['median_distance_in_bandwidths'] for r in per_seed):.2f} |"
+        )
+    return "\n".join(lines)
+
+
+def fell_back_at(run_dir: Path) -> int | None:
+    """The first episode after which a gated run had fallen back to PILCO, from its checkpoints; None if never."""
+    for path in sorted((run_dir / CHECKPOINT_DIR).glob("episode_*.pt")):
+        state = load_checkpoint(path).get("transfer") or {}
+        if state.get("fallen_back"):
+            return int(path.stem.split("_")[1])
+    return None
+
+
+def learn(family: Family, args: argparse.Namespace) -> tuple[dict, str]:
+    """PILCO, θ-only transfer and gated transfer on every target and seed; their table, markdown."""
+    root = args.runs_dir / family.task
+    values = [*family.near, *family.far]
+    transfer = [f"approach={args.approach}", "transfer.policy=false", "transfer.compliance=kernel"]
+    arm_overrides = {"pilco": [], "transfer": transfer,
+                     "gated": [*transfer, f"transfer.min_compliance={args.gate}"]}
+
+    def run(job: tuple[str, float, int]) -> None:
+        arm, value, seed = job
+        source = [f"transfer.source={family.sources / f'seed_{seed}'}"] if arm != "pilco" else []
+        overrides = [f"task={family.task}", f"task.env.{family.axis}={value}", f"seed={seed}",
+                     f"episodes={args.episodes}", *arm_overrides[arm], *source, *args.overrides]
+        ensure_run(overrides, root / arm / f"{family.axis}{value:g}" / f"seed_{seed}", args.episodes + 1)
+
+    jobs = [(arm, value, seed) for seed in args.seeds for value in values for arm in ARMS]
+    with ThreadPoolExecutor(max_workers=args.jobs) as pool:
+        list(pool.map(run, jobs))
+
+    budget = args.episodes + 1
+    results: dict = {}
+    lines = [
+        f"## Compliance gate: {family.task}, {family.label(family.source_value)} source",
+        "",
+        f"`{benchlib.command_line()}` — {benchlib.today()}, commit {benchlib.commit()}. Per target and seed: PILCO; "
+        f"θ-only transfer (`approach={args.approach} transfer.policy=false`, random initial episode); the same with "
+        f"`transfer.min_compliance={args.gate}` (the gate, kernel compliance). {budget} episodes per run (1 random "
+        f"+ {args.episodes} learned), one torch thread each, {args.jobs} in parallel. Runs: "
+        f"`{benchlib.display_path(root)}`. AUC: trapezoid over the {budget} episodes; final: mean of the last 3.",
+        "",
+        "| target | arm | first success per seed | solved | AUC | final | Λ at the first model "
+        "| fell back after episode |",
+        "| --- | --- | --- | ---: | ---: | ---: | ---: | --- |",
+    ]
+    for value in values:
+        for arm in ARMS:
+            per_seed = []
+            for seed in args.seeds:
+                run_dir = root / arm / f"{family.axis}{value:g}" / f"seed_{seed}"
+                curve = Curve.read(run_dir, budget)
+                per_seed.append({"seed": seed, "returns": curve.returns, "successes": [int(s) for s in curve.successes],
+                                 "compliance": curve.compliance, "fell_back_after": fell_back_at(run_dir),
+                                 **curve.summary()})
+            results.setdefault(str(value), {})[arm] = per_seed
+            firsts = " ".join("—" if r["first_success"] is None else str(r["first_success"]) for r in per_seed)
+            first_lambda = [r["compliance"][1] for r in per_seed if r["compliance"][1] == r["compliance"][1]]
+            fell = " ".join("—" if r["fell_back_after"] is None else str(r["fell_back_after"]) for r in per_seed)
+            lines.append(
+                f"| {family.label(value)}{' (far)' if value in family.far else ''} | {arm} | {firsts} | "
+                f"{sum(r['first_success'] is not None for r in per_seed)}/{len(per_seed)} | "
+                f"{mean_std([r['auc'] for r in per_seed], 1)} | "
+                f"{mean_std([r['final_performance'] for r in per_seed], 1)}"
+                f" | {mean_std(first_lambda) if first_lambda else '—'} | {fell if arm == 'gated' else ''} |"
+            )
+    lines += ["", "Returns per episode (target, arm, seed: curve):", ""]
+    for value, arms in results.items():
+        for arm, per_seed in arms.items():
+            for r in per_seed:
+                lines.append(f"- {family.label(float(value))}, {arm}, seed {r['seed']}: "
+                             + " ".join(f"{v:.1f}" for v in r["returns"]))
+    return results, "\n".join(lines)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--families", nargs="+", choices=list(FAMILIES), default=list(FAMILIES))
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
+    parser.add_argument("--learn", action="store_true", help="also the learning runs: PILCO, transfer, gated")
+    parser.add_argument("--gate", type=float, help="transfer.min_compliance of the gated runs (with --learn)")
+    parser.add_argument("--approach", default="qtl_bayesian", help="the transfer preset, run θ-only")
+    parser.add_argument("--episodes", type=int, default=10, help="learned episodes per learning run")
+    parser.add_argument("--jobs", type=int, default=2, help="learning runs in parallel (one torch thread each)")
+    parser.add_argument("--runs-dir", type=Path, default=benchlib.ROOT / "runs" / "bench_compliance")
+    parser.add_argument("--sources", nargs="*", default=[], metavar="FAMILY=DIR",
+                        help="another directory of seed_<k> source runs for a family")
+    args, args.overrides = parser.parse_known_args()
+    if args.learn and (args.gate is None or not 0.0 <= args.gate <= 1.0):
+        parser.error("--learn needs --gate in [0, 1]: the transfer.min_compliance chosen from the Λ table")
+    families = dict(FAMILIES)
+    for item in args.sources:
+        name, _, path = item.partition("=")
+        if name not in families or not path:
+            parser.error(f"--sources takes FAMILY=DIR with FAMILY one of {', '.join(FAMILIES)}, got {item!r}")
+        families[name] = dataclasses.replace(families[name], sources=Path(path).resolve())
+    for name in args.families:
+        missing = [s for s in args.seeds if not (families[name].sources / f"seed_{s}").is_dir()]
+        if missing:
+            parser.error(f"{name}: no source runs for seeds {missing} in {families[name].sources} "
+                         "(make them first, e.g. qtl-train experiment=mountaincar_source)")
+    torch.set_num_threads(1)
+    register_configs()
+
+    out = benchlib.ROOT / "docs" / "bench" / "compliance.json"
+    stored = json.loads(out.read_text()) if out.exists() else {}
+    for name in args.families:
+        family = families[name]
+        values = [family.source_value, *family.near, *family.far]
+        rows = {v: [initial_compliance(family, v, s) for s in args.seeds] for v in values}
+        verdict = compliance_verdict(family, rows)
+        header = f"`{benchlib.command_line()}` — {benchlib.today()}, commit {benchlib.commit()}.\n\n"
+        section = compliance_section(family, rows, verdict, args.seeds)
+        section = section.replace("\n\n", "\n\n" + header, 1)
+        benchlib.write_section(f"bench_compliance-{name}", section)
+        print(section, flush=True)
+        entry = {"date": benchlib.today(), "command": benchlib.command_line(), "machine": benchlib.machine(),
+                 "sources": str(family.sources), "verdict": verdict,
+                 "compliance": {str(v): r for v, r in rows.items()}}
+        if args.learn:
+            entry["gate"] = args.gate
+            entry["learning"], table = learn(family, args)
+            benchlib.write_section(f"bench_compliance_gate-{name}", table)
+            print(table, flush=True)
+        elif "learning" in stored.get(name, {}):
+            entry["gate"], entry["learning"] = stored[name]["gate"], stored[name]["learning"]
+        stored[name] = entry
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(stored, indent=2) + "\n")
+
+
+if __name__ == "__main__":
+    main()
