@@ -90,9 +90,12 @@ def target_config(family: Family, value: float, seed: int, extra: list[str] | No
                                                        f"seed={seed}", *(extra or [])])
 
 
-def initial_compliance(family: Family, value: float, seed: int) -> dict:
-    """Λ of the target's initial (random) episode under the seed's source, three ways, and the tuples' distances."""
-    cfg = target_config(family, value, seed)
+def initial_compliance(family: Family, value: float, seed: int, extra: list[str] | None = None) -> dict:
+    """Λ of the target's initial (random) episode under the seed's source, three ways, and the tuples' distances.
+
+    ``extra``: Hydra overrides of the target runs (as ``--learn`` passes them), so that the episode is theirs.
+    """
+    cfg = target_config(family, value, seed, extra)
     parts = build(cfg)
     source = SourceRun.load(family.sources / f"seed_{seed}")
     source.check_compatible(parts.task)
@@ -275,7 +278,7 @@ def main() -> None:
     for name in args.families:
         family = families[name]
         values = [family.source_value, *family.near, *family.far]
-        rows = {v: [initial_compliance(family, v, s) for s in args.seeds] for v in values}
+        rows = {v: [initial_compliance(family, v, s, args.overrides) for s in args.seeds] for v in values}
         verdict = compliance_verdict(family, rows)
         header = f"`{benchlib.command_line()}` — {benchlib.today()}, commit {benchlib.commit()}.\n\n"
         section = compliance_section(family, rows, verdict, args.seeds)

@@ -3,9 +3,11 @@
 Each run's GP is rebuilt from its last checkpoint (its data and stored θ, no fitting): the source's as
 transfer reads it, each target's as its last model. Printed as a markdown table (one row per target run,
 one column per resolution ρ; ``transfer.compliance_resolution``), and as JSON with ``--json PATH``.
+``--compliance`` chooses the estimate as ``transfer.compliance`` does (default: kernel, with
+``--bandwidth scott``); ``--temperature`` is the likelihood ratio's κ.
 
     .venv/bin/python scripts/compliance.py SOURCE_RUN TARGET_RUN [TARGET_RUN ...] [--resolution 0 0.1]
-        [--temperature KAPPA] [--json PATH]
+        [--compliance kernel|likelihood_ratio] [--bandwidth scott|none] [--temperature KAPPA] [--json PATH]
 """
 
 from __future__ import annotations
@@ -17,7 +19,7 @@ from pathlib import Path
 import torch
 
 from qtl.features import AngleFeatures
-from qtl.transfer.compliance import task_compliance
+from qtl.transfer.compliance import BANDWIDTHS, COMPLIANCES, DEFAULT_COMPLIANCE, kernel_compliance, task_compliance
 from qtl.transfer.source import SourceRun
 
 
@@ -26,9 +28,13 @@ def main() -> None:
     parser.add_argument("source", type=Path)
     parser.add_argument("targets", type=Path, nargs="+")
     parser.add_argument("--resolution", type=float, nargs="+", default=[0.0])
-    parser.add_argument("--temperature", type=float, help="κ (default: the state dimension)")
+    parser.add_argument("--compliance", choices=sorted(COMPLIANCES), default=DEFAULT_COMPLIANCE)
+    parser.add_argument("--bandwidth", choices=BANDWIDTHS, default="scott", help="the kernel estimate's bandwidth")
+    parser.add_argument("--temperature", type=float, help="κ of the likelihood ratio (default: the state dimension)")
     parser.add_argument("--json", type=Path, help="also write the results here")
     args = parser.parse_args()
+    if args.temperature is not None and args.compliance != "likelihood_ratio":
+        parser.error("--temperature tempers the likelihood ratio only: add --compliance likelihood_ratio")
     torch.set_num_threads(1)
 
     source = SourceRun.load(args.source)
@@ -39,18 +45,24 @@ def main() -> None:
         target = SourceRun.load(path)
         source.check_compatible(target.task)
         model = target.model(features)
-        values = {rho: task_compliance(source_model, model, temperature=args.temperature, resolution=rho).value
-                  for rho in args.resolution}
+        def value(rho: float, model=model) -> float:
+            if args.compliance == "kernel":
+                return kernel_compliance(source_model, model, bandwidth=args.bandwidth, resolution=rho).value
+            return task_compliance(source_model, model, temperature=args.temperature, resolution=rho).value
+
+        values = {rho: value(rho) for rho in args.resolution}
         rows.append({"target": str(path), "episode": target.episode, "n": len(target.dataset),
                      "compliance": {str(rho): value for rho, value in values.items()}})
-    print(f"source: {args.source} (episode {source.episode}, n = {len(source.dataset)})\n")
+    how = args.compliance + (f", bandwidth {args.bandwidth}" if args.compliance == "kernel" else "")
+    print(f"source: {args.source} (episode {source.episode}, n = {len(source.dataset)}); compliance: {how}\n")
     print("| target run | n | " + " | ".join(f"Λ, ρ = {rho:g}" for rho in args.resolution) + " |")
     print("| --- | ---: | " + " | ".join("---:" for _ in args.resolution) + " |")
     for row in rows:
         print(f"| {row['target']} | {row['n']} | " + " | ".join(f"{v:.2f}" for v in row["compliance"].values()) + " |")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps({"source": str(args.source), "targets": rows}, indent=2) + "\n")
+        args.json.write_text(json.dumps({"source": str(args.source), "compliance": args.compliance,
+                                         "bandwidth": args.bandwidth, "targets": rows}, indent=2) + "\n")
 
 
 if __name__ == "__main__":

@@ -12,7 +12,7 @@ import pytest
 
 from qtl.features import AngleFeatures
 from qtl.loop import run
-from qtl.transfer.compliance import task_compliance
+from qtl.transfer.compliance import kernel_compliance, task_compliance
 from qtl.transfer.source import SourceRun
 from tests.helpers import tiny_config
 
@@ -38,16 +38,23 @@ def script(name: str, *args: str) -> subprocess.CompletedProcess:
     return done
 
 
-def test_compliance_script_equals_the_library_at_each_resolution(runs, tmp_path) -> None:
+@pytest.mark.parametrize("how", [[], ["--bandwidth", "none"], ["--compliance", "likelihood_ratio"]])
+def test_compliance_script_equals_the_library_at_each_resolution(runs, tmp_path, how) -> None:
     source_dir, target_dir = runs
     output = tmp_path / "compliance.json"
-    done = script("compliance.py", str(source_dir), str(target_dir), "--resolution", "0", "0.1", "--json", str(output))
+    done = script("compliance.py", str(source_dir), str(target_dir), "--resolution", "0", "0.1", "--json", str(output),
+                  *how)
     assert "Λ, ρ = 0.1" in done.stdout
     row = json.loads(output.read_text())["targets"][0]
     source, target = SourceRun.load(source_dir), SourceRun.load(target_dir)
     features = AngleFeatures(source.task.state_dim, source.task.angle_dims)
+    source_model, target_model = source.model(features), target.model(features)
     for rho in (0.0, 0.1):
-        expected = task_compliance(source.model(features), target.model(features), resolution=rho).value
+        if "likelihood_ratio" in how:
+            expected = task_compliance(source_model, target_model, resolution=rho).value
+        else:
+            bandwidth = "none" if "none" in how else "scott"
+            expected = kernel_compliance(source_model, target_model, bandwidth=bandwidth, resolution=rho).value
         assert row["compliance"][str(rho)] == pytest.approx(expected, abs=1e-12)
 
 

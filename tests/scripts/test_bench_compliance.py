@@ -1,0 +1,62 @@
+"""``scripts/bench_compliance.py``: its Λ is the one the gate of a real target run reads at the first model."""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+from pathlib import Path
+
+import pytest
+
+from qtl.loop import run
+from qtl.metrics import Curve
+from tests.helpers import TINY, tiny_config
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "scripts"))
+import bench_compliance
+
+SEED = 3
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory) -> tuple[Path, Path, Path]:
+    """A tiny 0.5 kg source run, and two tiny 2.0 kg θ-only transfer runs from it: ungated and gated at 1.0."""
+    root = tmp_path_factory.mktemp("bench_compliance")
+    sources = root / "sources"
+    run(tiny_config("episodes=2", f"seed={SEED}"), sources / f"seed_{SEED}")
+    transfer = [f"transfer.source={sources / f'seed_{SEED}'}", "approach=qtl_bayesian", "transfer.policy=false",
+                "task.env.pole_mass=2.0", f"seed={SEED}", "episodes=2"]
+    run(tiny_config(*transfer), root / "transfer")
+    run(tiny_config(*transfer, "transfer.min_compliance=1.0"), root / "gated")
+    return sources, root / "transfer", root / "gated"
+
+
+def test_initial_compliance_is_what_the_run_logs_at_its_first_model(runs) -> None:
+    sources, transfer, _ = runs
+    family = dataclasses.replace(bench_compliance.FAMILIES["cartpole"], sources=sources)
+    row = bench_compliance.initial_compliance(family, 2.0, SEED, list(TINY))
+    logged = Curve.read(transfer).compliance
+    assert row["kernel"] == pytest.approx(logged[1], rel=1e-9)  # episode 1: the first model, on episode 0's tuples
+    assert 0.0 < row["kernel"] <= 1.0 and row["kernel"] >= row["kernel_no_bandwidth"]
+    assert 0.0 <= row["likelihood_ratio"] <= 1.0
+    assert row["tuples"] == 8 and row["seed"] == SEED and len(row["bandwidth"]) == 4
+
+
+def test_the_gate_is_read_back_from_the_checkpoints(runs) -> None:
+    _, transfer, gated = runs
+    assert bench_compliance.fell_back_at(transfer) is None
+    assert bench_compliance.fell_back_at(gated) == 1  # Λ < 1.0 at the first model: PILCO from episode 1 on
+
+
+def test_verdict_orders_cart_pole_targets_by_mass() -> None:
+    family = bench_compliance.FAMILIES["cartpole"]
+
+    def rows(*values: float) -> dict[float, list[dict]]:
+        return {v: [{"kernel": k}] for v, k in zip((*family.near, *family.far), values, strict=True)}
+
+    assert all(bench_compliance.compliance_verdict(family, rows(0.9, 0.8, 0.6, 0.5, 0.3)).values())
+    out_of_order = bench_compliance.compliance_verdict(family, rows(0.8, 0.9, 0.6, 0.5, 0.3))
+    assert not out_of_order["ordered by mass"] and out_of_order["far target lowest"]
+    saturated = bench_compliance.compliance_verdict(family, rows(0.99, 0.8, 0.6, 0.5, 0.3))
+    assert not saturated["near targets not saturated (0.05 < Λ < 0.95)"]
+    assert not bench_compliance.compliance_verdict(family, rows(0.9, 0.8, 0.6, 0.5, 0.55))["far target lowest"]
