@@ -186,8 +186,7 @@ def learn(family: Family, args: argparse.Namespace) -> tuple[dict, str]:
     root = args.runs_dir / family.task
     values = [*family.near, *family.far]
     transfer = [f"approach={args.approach}", "transfer.policy=false", "transfer.compliance=kernel"]
-    arm_overrides = {"pilco": [], "transfer": transfer,
-                     "gated": [*transfer, f"transfer.min_compliance={args.gate}"]}
+    arm_overrides = {"pilco": [], "transfer": transfer, "gated": [*transfer, f"transfer.min_compliance={args.gate}"]}
 
     def run(job: tuple[str, float, int]) -> None:
         arm, value, seed = job
@@ -196,7 +195,9 @@ def learn(family: Family, args: argparse.Namespace) -> tuple[dict, str]:
                      f"episodes={args.episodes}", *arm_overrides[arm], *source, *args.overrides]
         ensure_run(overrides, root / arm / f"{family.axis}{value:g}" / f"seed_{seed}", args.episodes + 1)
 
-    jobs = [(arm, value, seed) for seed in args.seeds for value in values for arm in ARMS]
+    # PILCO and transfer first (seed-major, so that partial results pair up), the gated runs last.
+    jobs = [(arm, value, seed) for arm_group in (("pilco", "transfer"), ("gated",)) for seed in args.seeds
+            for value in values for arm in arm_group if arm in args.arms]
     with ThreadPoolExecutor(max_workers=args.jobs) as pool:
         list(pool.map(run, jobs))
 
@@ -216,7 +217,7 @@ def learn(family: Family, args: argparse.Namespace) -> tuple[dict, str]:
         "| --- | --- | --- | ---: | ---: | ---: | ---: | --- |",
     ]
     for value in values:
-        for arm in ARMS:
+        for arm in args.arms:
             per_seed = []
             for seed in args.seeds:
                 run_dir = root / arm / f"{family.axis}{value:g}" / f"seed_{seed}"
@@ -250,6 +251,7 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
     parser.add_argument("--learn", action="store_true", help="also the learning runs: PILCO, transfer, gated")
     parser.add_argument("--gate", type=float, help="transfer.min_compliance of the gated runs (with --learn)")
+    parser.add_argument("--arms", nargs="+", choices=ARMS, default=list(ARMS), help="which learning runs")
     parser.add_argument("--approach", default="qtl_bayesian", help="the transfer preset, run θ-only")
     parser.add_argument("--episodes", type=int, default=10, help="learned episodes per learning run")
     parser.add_argument("--jobs", type=int, default=2, help="learning runs in parallel (one torch thread each)")
@@ -257,7 +259,8 @@ def main() -> None:
     parser.add_argument("--sources", nargs="*", default=[], metavar="FAMILY=DIR",
                         help="another directory of seed_<k> source runs for a family")
     args, args.overrides = parser.parse_known_args()
-    if args.learn and (args.gate is None or not 0.0 <= args.gate <= 1.0):
+    args.arms = [arm for arm in ARMS if arm in args.arms]
+    if args.learn and "gated" in args.arms and (args.gate is None or not 0.0 <= args.gate <= 1.0):
         parser.error("--learn needs --gate in [0, 1]: the transfer.min_compliance chosen from the Λ table")
     families = dict(FAMILIES)
     for item in args.sources:
