@@ -121,13 +121,6 @@ def initial_compliance(family: Family, value: float, seed: int, extra: list[str]
     }
 
 
-def mean_std(values: list[float], digits: int = 2) -> str:
-    """Mean ± std over seeds."""
-    if len(values) < 2:
-        return f"{values[0]:.{digits}f}" if values else "—"
-    return f"{statistics.mean(values):.{digits}f} ± {statistics.stdev(values):.{digits}f}"
-
-
 def compliance_verdict(family: Family, rows: dict[float, list[dict]]) -> dict[str, bool]:
     """The issue's requirements on Λ (kernel): near targets in (0.05, 0.95), ordered by the change, far lowest."""
     means = {value: statistics.mean(r["kernel"] for r in rows[value]) for value in rows}
@@ -162,10 +155,10 @@ def compliance_section(
     for value, per_seed in rows.items():
         kind = " (far)" if value in family.far else (" (source task)" if value == family.source_value else "")
         lines.append(
-            f"| {family.label(value)}{kind} | {mean_std([r['kernel'] for r in per_seed])} | "
+            f"| {family.label(value)}{kind} | {benchlib.mean_std([r['kernel'] for r in per_seed], 2)} | "
             + " ".join(f"{r['kernel']:.2f}" for r in per_seed)
-            + f" | {mean_std([r['kernel_no_bandwidth'] for r in per_seed], 3)} | "
-            f"{mean_std([r['likelihood_ratio'] for r in per_seed], 3)} | "
+            + f" | {benchlib.mean_std([r['kernel_no_bandwidth'] for r in per_seed], 3)} | "
+            f"{benchlib.mean_std([r['likelihood_ratio'] for r in per_seed], 3)} | "
             f"{statistics.median(r['median_distance_in_predictive_sd'] for r in per_seed):.1f} | "
             f"{statistics.median(r['median_distance_in_bandwidths'] for r in per_seed):.2f} |"
         )
@@ -226,15 +219,15 @@ def learn(family: Family, args: argparse.Namespace) -> tuple[dict, str]:
                                  "compliance": curve.compliance, "fell_back_after": fell_back_at(run_dir),
                                  **curve.summary()})
             results.setdefault(str(value), {})[arm] = per_seed
-            firsts = " ".join("—" if r["first_success"] is None else str(r["first_success"]) for r in per_seed)
+            firsts = benchlib.first_successes(per_seed)
             first_lambda = [r["compliance"][1] for r in per_seed if r["compliance"][1] == r["compliance"][1]]
             fell = " ".join("—" if r["fell_back_after"] is None else str(r["fell_back_after"]) for r in per_seed)
             lines.append(
                 f"| {family.label(value)}{' (far)' if value in family.far else ''} | {arm} | {firsts} | "
                 f"{sum(r['first_success'] is not None for r in per_seed)}/{len(per_seed)} | "
-                f"{mean_std([r['auc'] for r in per_seed], 1)} | "
-                f"{mean_std([r['final_performance'] for r in per_seed], 1)}"
-                f" | {mean_std(first_lambda) if first_lambda else '—'} | {fell if arm == 'gated' else ''} |"
+                f"{benchlib.mean_std([r['auc'] for r in per_seed], 1)} | "
+                f"{benchlib.mean_std([r['final_performance'] for r in per_seed], 1)}"
+                f" | {benchlib.mean_std(first_lambda, 2) if first_lambda else '—'} | {fell if arm == 'gated' else ''} |"
             )
     lines += ["", "Returns per episode (target, arm, seed: curve):", ""]
     for value, arms in results.items():

@@ -65,13 +65,6 @@ def link_experiment(runs_dir: Path, sources: Path) -> None:
     ExperimentRecord(name="cartpole transfer benchmark", commands=[benchlib.command_line()]).write(runs_dir)
 
 
-def stats(values: list[float], digits: int = 1) -> str:
-    """Mean ± std over seeds."""
-    if len(values) < 2:
-        return f"{values[0]:.{digits}f}" if values else "—"
-    return f"{statistics.mean(values):.{digits}f} ± {statistics.stdev(values):.{digits}f}"
-
-
 def result_names(mass: float, tag: str = "") -> tuple[str, str]:
     """The JSON file and docs section of a target mass (and ``--tag``): the headline 2.0 kg plain, others suffixed."""
     suffix = ("" if mass == DEFAULT_MASS else f"-m{mass:g}") + (f"-{tag}" if tag else "")
@@ -179,7 +172,7 @@ def main() -> None:
     ]
     for name, r in results.items():
         seeds = r["per_seed"]
-        firsts = " ".join("—" if s["first_success"] is None else str(s["first_success"]) for s in seeds)
+        firsts, stats = benchlib.first_successes(seeds), benchlib.mean_std
         compliance = [s["compliance"][-1] for s in seeds if s["compliance"][-1] == s["compliance"][-1]]
         lines.append(
             f"| {name} | {firsts} | {r['median_episodes_to_success']:g} | {r['solved']}/{len(seeds)} | "

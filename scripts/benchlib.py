@@ -8,6 +8,7 @@ import os
 import platform
 import re
 import resource
+import statistics
 import subprocess
 import sys
 from pathlib import Path
@@ -89,3 +90,15 @@ def write_section(name: str, markdown: str) -> None:
     else:
         text = text.rstrip() + "\n\n" + block + "\n"
     BENCHMARKS_MD.write_text(text)
+
+
+def mean_std(values: list[float], digits: int = 1) -> str:
+    """Mean ± std over seeds ("—" for none, the value alone for one)."""
+    if len(values) < 2:
+        return f"{values[0]:.{digits}f}" if values else "—"
+    return f"{statistics.mean(values):.{digits}f} ± {statistics.stdev(values):.{digits}f}"
+
+
+def first_successes(per_seed: list[dict]) -> str:
+    """The episode of each seed's first success ("—": none), space-separated."""
+    return " ".join("—" if r["first_success"] is None else str(r["first_success"]) for r in per_seed)
