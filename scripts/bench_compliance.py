@@ -219,16 +219,19 @@ def learn(family: Family, args: argparse.Namespace) -> tuple[dict, str]:
                                  "compliance": curve.compliance, "fell_back_after": fell_back_at(run_dir),
                                  **curve.summary()})
             results.setdefault(str(value), {})[arm] = per_seed
-            firsts = benchlib.first_successes(per_seed)
             first_lambda = [r["compliance"][1] for r in per_seed if r["compliance"][1] == r["compliance"][1]]
-            fell = " ".join("—" if r["fell_back_after"] is None else str(r["fell_back_after"]) for r in per_seed)
-            lines.append(
-                f"| {family.label(value)}{' (far)' if value in family.far else ''} | {arm} | {firsts} | "
-                f"{sum(r['first_success'] is not None for r in per_seed)}/{len(per_seed)} | "
-                f"{benchlib.mean_std([r['auc'] for r in per_seed], 1)} | "
-                f"{benchlib.mean_std([r['final_performance'] for r in per_seed], 1)}"
-                f" | {benchlib.mean_std(first_lambda, 2) if first_lambda else '—'} | {fell if arm == 'gated' else ''} |"
-            )
+            cells = [
+                family.label(value) + (" (far)" if value in family.far else ""),
+                arm,
+                benchlib.first_successes(per_seed),
+                f"{sum(r['first_success'] is not None for r in per_seed)}/{len(per_seed)}",
+                benchlib.mean_std([r["auc"] for r in per_seed]),
+                benchlib.mean_std([r["final_performance"] for r in per_seed]),
+                benchlib.mean_std(first_lambda, 2),
+                " ".join("—" if r["fell_back_after"] is None else str(r["fell_back_after"]) for r in per_seed)
+                if arm == "gated" else "",
+            ]
+            lines.append("| " + " | ".join(cells) + " |")
     lines += ["", "Returns per episode (target, arm, seed: curve):", ""]
     for value, arms in results.items():
         for arm, per_seed in arms.items():

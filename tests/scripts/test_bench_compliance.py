@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import sys
 from pathlib import Path
@@ -10,7 +11,7 @@ import pytest
 
 from qtl.loop import run
 from qtl.metrics import Curve
-from tests.helpers import TINY, tiny_config
+from tests.helpers import BUDGET, TINY, tiny_config
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "scripts"))
 import bench_compliance
@@ -60,3 +61,18 @@ def test_verdict_orders_cart_pole_targets_by_mass() -> None:
     saturated = bench_compliance.compliance_verdict(family, rows(0.99, 0.8, 0.6, 0.5, 0.3))
     assert not saturated["near targets not saturated (0.05 < Λ < 0.95)"]
     assert not bench_compliance.compliance_verdict(family, rows(0.9, 0.8, 0.6, 0.5, 0.55))["far target lowest"]
+
+
+def test_learning_runs_pair_up_and_a_gate_at_the_first_model_is_pilco(runs, tmp_path) -> None:
+    """--learn: every arm runs through the CLI; a run gated at its first model repeats PILCO's run exactly."""
+    sources, _, _ = runs
+    family = dataclasses.replace(bench_compliance.FAMILIES["cartpole"], sources=sources, near=(2.0,), far=())
+    args = argparse.Namespace(runs_dir=tmp_path, approach="qtl_bayesian", gate=1.0, episodes=1, jobs=2, seeds=[SEED],
+                              arms=list(bench_compliance.ARMS), overrides=list(BUDGET))
+    results, table = bench_compliance.learn(family, args)
+    arms = results["2.0"]
+    assert set(arms) == {"pilco", "transfer", "gated"}
+    assert arms["gated"][0]["fell_back_after"] == 1 and arms["transfer"][0]["fell_back_after"] is None
+    assert arms["gated"][0]["returns"] == arms["pilco"][0]["returns"]  # same seed, θ = θ_p from the first model
+    assert arms["transfer"][0]["compliance"][1] == arms["gated"][0]["compliance"][1]  # the same tuples, one Λ
+    assert "| 2.0 kg | gated |" in table and table.count("\n- 2.0 kg, ") == 3
