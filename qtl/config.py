@@ -450,7 +450,7 @@ class TransferConfig:
     )
     policy: bool = field(default=False, metadata=doc("ψ_0 = ψ_s: the source's final policy is the initial policy"))
     min_compliance: Optional[float] = field(  # noqa: UP045
-        default=None, metadata=doc("below this task compliance (Eq. 14), fall back to PILCO"),
+        default=None, metadata=doc("below this task compliance (Eq. 14) at the first model, fall back to PILCO"),
     )
     compliance: str = field(
         default="kernel",

@@ -119,13 +119,18 @@ class TransferPlan:
                                resolution=self.resolution).value
 
     def update(self, learned: GPHyperparameters, num_tuples: int, compliance: float = math.nan) -> GPHyperparameters:
-        """θ of the next model: θ_0 = θ_s (line 2, Eq. 6), then the rule on θ_p (line 13); PILCO: θ_p."""
+        """θ of the next model: θ_0 = θ_s (line 2, Eq. 6), then the rule on θ_p (line 13); PILCO: θ_p.
+
+        At the first model, Λ (``compliance``, Eq. 14) below ``transfer.min_compliance`` drops θ_s for good.
+        """
         if not self.transfer_theta or self.fallen_back:
             self.theta = learned
             return learned
-        if self.min_compliance is not None and compliance < float(self.min_compliance):
-            log.warning("task compliance %.3f < transfer.min_compliance=%s: θ_s is dropped, the run continues as "
-                        "PILCO (θ = θ_p)", compliance, self.min_compliance)
+        # The gate reads Λ once, at the first model: its tuples are the initial episodes', the same actions
+        # for every target; later tuples follow the run's own policy, whose states move Λ either way.
+        if self.theta is None and self.min_compliance is not None and compliance < float(self.min_compliance):
+            log.warning("task compliance %.3f < transfer.min_compliance=%s at the first model: θ_s is dropped, the "
+                        "run continues as PILCO (θ = θ_p)", compliance, self.min_compliance)
             self.fallen_back = True
             self.theta = learned
             return learned

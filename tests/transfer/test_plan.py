@@ -67,11 +67,19 @@ def test_free_rule_warm_starts_evidence_maximisation_from_theta_s(finished_sourc
 def test_compliance_gate_drops_theta_s_for_good(finished_source):
     gated = plan(Bayesian(), source=str(finished_source), min_compliance=0.3)
     assert 0.0 <= gated.compliance(gated.source.model(FEATURES)) <= 1.0
-    gated.update(learned(0.5), 8, compliance=0.9)
     theta_p = learned(0.7)
-    assert gated.update(theta_p, 16, compliance=0.1) is theta_p and gated.fallen_back
-    assert gated.update(learned(0.9), 24, compliance=0.9).natural().max() == pytest.approx(0.9)
+    assert gated.update(theta_p, 8, compliance=0.1) is theta_p and gated.fallen_back  # at the first model
+    assert gated.update(learned(0.9), 16, compliance=0.9).natural().max() == pytest.approx(0.9)
     assert gated.fit_start() is None
+
+
+def test_compliance_gate_reads_the_first_model_only(finished_source):
+    """Later models' Λ, on tuples of the run's own policies, does not move the gate."""
+    gated = plan(Bayesian(), source=str(finished_source), min_compliance=0.3)
+    first = gated.update(learned(0.5), 8, compliance=0.9)
+    assert first is not None and not gated.fallen_back
+    theta_p = learned(0.7)
+    assert gated.update(theta_p, 16, compliance=0.1) is not theta_p and not gated.fallen_back
 
 
 def test_transfer_compliance_chooses_the_compliance_the_gate_reads(finished_source):
