@@ -188,9 +188,11 @@ def learn(family: Family, args: argparse.Namespace) -> tuple[dict, str]:
                      f"episodes={args.episodes}", *arm_overrides[arm], *source, *args.overrides]
         ensure_run(overrides, root / arm / f"{family.axis}{value:g}" / f"seed_{seed}", args.episodes + 1)
 
-    # PILCO and transfer first (seed-major, so that partial results pair up), the gated runs last.
-    jobs = [(arm, value, seed) for arm_group in (("pilco", "transfer"), ("gated",)) for seed in args.seeds
-            for value in values for arm in arm_group if arm in args.arms]
+    # PILCO and transfer first (seed-major, so that partial results pair up), then the gated runs, far targets first.
+    jobs = [(arm, value, seed) for seed in args.seeds for value in values for arm in ("pilco", "transfer")
+            if arm in args.arms]
+    if "gated" in args.arms:
+        jobs += [("gated", value, seed) for value in [*family.far, *family.near] for seed in args.seeds]
     with ThreadPoolExecutor(max_workers=args.jobs) as pool:
         list(pool.map(run, jobs))
 
