@@ -45,12 +45,12 @@ def today() -> str:
 
 def commit() -> str:
     """The checked-out commit (short hash), with '+changes' when tracked files outside docs/ differ from it."""
-    def git(*args: str) -> str:
-        return subprocess.run(["git", *args], cwd=ROOT, capture_output=True, text=True).stdout.strip()
+    def git(*args: str) -> str:  # not stripped: a porcelain line's status column may start with a space
+        return subprocess.run(["git", *args], cwd=ROOT, capture_output=True, text=True).stdout
 
     changed = [line for line in git("status", "--porcelain", "--untracked-files=no").splitlines()
                if not line[3:].startswith("docs/")]
-    return (git("rev-parse", "--short", "HEAD") or "unknown") + ("+changes" if changed else "")
+    return (git("rev-parse", "--short", "HEAD").strip() or "unknown") + ("+changes" if changed else "")
 
 
 def peak_rss_mib() -> float:

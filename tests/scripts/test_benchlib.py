@@ -1,0 +1,40 @@
+"""``scripts/benchlib.py``: the commit a benchmark names, and the shared table cells."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "scripts"))
+import benchlib
+
+
+def _repo(tmp_path: Path) -> Path:
+    def git(*args: str) -> None:
+        subprocess.run(["git", *args], cwd=tmp_path, check=True, capture_output=True)
+
+    git("init", "-q")
+    (tmp_path / "docs").mkdir()
+    (tmp_path / "docs" / "benchmarks.md").write_text("a\n")
+    (tmp_path / "code.py").write_text("a\n")
+    git("add", ".")
+    git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-qm", "init")
+    return tmp_path
+
+
+def test_commit_ignores_changed_docs_but_not_changed_code(tmp_path, monkeypatch) -> None:
+    root = _repo(tmp_path)
+    monkeypatch.setattr(benchlib, "ROOT", root)
+    clean = benchlib.commit()
+    assert len(clean) >= 7 and "+" not in clean
+    (root / "docs" / "benchmarks.md").write_text("b\n")  # ` M docs/...`: a benchmark writing its table
+    assert benchlib.commit() == clean
+    (root / "code.py").write_text("b\n")
+    assert benchlib.commit() == clean + "+changes"
+
+
+def test_mean_std_and_first_successes() -> None:
+    assert benchlib.mean_std([]) == "—" and benchlib.mean_std([2.0]) == "2.0"
+    assert benchlib.mean_std([1.0, 3.0], 2) == "2.00 ± 1.41"
+    assert benchlib.first_successes([{"first_success": 3}, {"first_success": None}]) == "3 —"
