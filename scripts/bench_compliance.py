@@ -52,6 +52,7 @@ from qtl.data import TransitionDataset
 from qtl.episodes import random_actor, run_episode
 from qtl.launch import ensure_run
 from qtl.metrics import Curve
+from qtl.report import SOURCE_DIR, TARGET_DIR, discover, plot_learning_curves
 from qtl.seeding import ACTION_STREAM, ENV_STREAM, MODEL_STREAM, derive_seed, torch_generator
 from qtl.transfer.compliance import kernel_compliance, task_compliance
 from qtl.transfer.source import SourceRun
@@ -174,6 +175,17 @@ def fell_back_at(run_dir: Path) -> int | None:
     return None
 
 
+def link_experiment(root: Path, sources: Path, arms: list[str]) -> None:
+    """Lay ``root`` out as an experiment directory that ``qtl.report`` reads: ``target/<arm>`` and ``source`` links."""
+    (root / TARGET_DIR).mkdir(parents=True, exist_ok=True)
+    for arm in arms:
+        link = root / TARGET_DIR / arm
+        if not link.exists():
+            link.symlink_to(Path("..") / arm, target_is_directory=True)
+    if not (root / SOURCE_DIR).exists():
+        (root / SOURCE_DIR).symlink_to(sources.resolve(), target_is_directory=True)
+
+
 def learn(family: Family, args: argparse.Namespace) -> tuple[dict, str]:
     """PILCO, θ-only transfer and gated transfer on every target and seed; their table, markdown."""
     root = args.runs_dir / family.task
@@ -196,6 +208,10 @@ def learn(family: Family, args: argparse.Namespace) -> tuple[dict, str]:
     with ThreadPoolExecutor(max_workers=args.jobs) as pool:
         list(pool.map(run, jobs))
 
+    link_experiment(root, family.sources, args.arms)
+    figure, *others = plot_learning_curves(discover(root), args.figures / f"compliance_{family.task}_learning_curves")
+    for other in others:  # the png goes into the docs; the report's other formats are not needed there
+        other.unlink()
     budget = args.episodes + 1
     results: dict = {}
     lines = [
@@ -206,6 +222,8 @@ def learn(family: Family, args: argparse.Namespace) -> tuple[dict, str]:
         f"`transfer.min_compliance={args.gate}` (the gate, kernel compliance). {budget} episodes per run (1 random "
         f"+ {args.episodes} learned), one torch thread each, {args.jobs} in parallel. Runs: "
         f"`{benchlib.display_path(root)}`. AUC: trapezoid over the {budget} episodes; final: mean of the last 3.",
+        "",
+        f"![learning curves, mean ± std over seeds]({figure.relative_to(args.figures.parent)})",
         "",
         "| target | arm | first success per seed | solved | AUC | final | Λ at the first model "
         "| fell back after episode |",
@@ -254,6 +272,8 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=10, help="learned episodes per learning run")
     parser.add_argument("--jobs", type=int, default=2, help="learning runs in parallel (one torch thread each)")
     parser.add_argument("--runs-dir", type=Path, default=benchlib.ROOT / "runs" / "bench_compliance")
+    parser.add_argument("--figures", type=Path, default=benchlib.ROOT / "docs" / "results",
+                        help="where the learning-curve figure goes")
     parser.add_argument("--sources", nargs="*", default=[], metavar="FAMILY=DIR",
                         help="another directory of seed_<k> source runs for a family")
     args, args.overrides = parser.parse_known_args()

@@ -11,6 +11,7 @@ import pytest
 
 from qtl.loop import run
 from qtl.metrics import Curve
+from qtl.report import discover
 from tests.helpers import BUDGET, TINY, tiny_config
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "scripts"))
@@ -68,7 +69,8 @@ def test_learning_runs_pair_up_and_a_gate_at_the_first_model_is_pilco(runs, tmp_
     sources, _, _ = runs
     family = dataclasses.replace(bench_compliance.FAMILIES["cartpole"], sources=sources, near=(2.0,), far=())
     args = argparse.Namespace(runs_dir=tmp_path, approach="qtl_bayesian", gate=1.0, episodes=1, jobs=2, seeds=[SEED],
-                              arms=list(bench_compliance.ARMS), overrides=list(BUDGET))
+                              arms=list(bench_compliance.ARMS), overrides=list(BUDGET), figures=tmp_path / "results")
+    args.figures.mkdir()
     results, table = bench_compliance.learn(family, args)
     arms = results["2.0"]
     assert set(arms) == {"pilco", "transfer", "gated"}
@@ -76,3 +78,6 @@ def test_learning_runs_pair_up_and_a_gate_at_the_first_model_is_pilco(runs, tmp_
     assert arms["gated"][0]["returns"] == arms["pilco"][0]["returns"]  # same seed, θ = θ_p from the first model
     assert arms["transfer"][0]["compliance"][1] == arms["gated"][0]["compliance"][1]  # the same tuples, one Λ
     assert "| 2.0 kg | gated |" in table and table.count("\n- 2.0 kg, ") == 3
+    assert (tmp_path / "results" / "compliance_cartpole_learning_curves.png").stat().st_size > 0
+    assert "](results/compliance_cartpole_learning_curves.png)" in table
+    assert sorted(discover(tmp_path / "cartpole").approaches) == ["gated", "pilco", "transfer"]
