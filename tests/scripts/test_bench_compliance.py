@@ -69,7 +69,8 @@ def test_learning_runs_pair_up_and_a_gate_at_the_first_model_is_pilco(runs, tmp_
     sources, _, _ = runs
     family = dataclasses.replace(bench_compliance.FAMILIES["cartpole"], sources=sources, near=(2.0,), far=())
     args = argparse.Namespace(runs_dir=tmp_path, approach="qtl_bayesian", gate=1.0, episodes=1, jobs=2, seeds=[SEED],
-                              arms=list(bench_compliance.ARMS), overrides=list(BUDGET), figures=tmp_path / "results")
+                              arms=list(bench_compliance.ARMS), overrides=list(BUDGET), figures=tmp_path / "results",
+                              gate_on="all")
     args.figures.mkdir()
     results, table = bench_compliance.learn(family, args)
     arms = results["2.0"]
