@@ -7,6 +7,7 @@ from qtl.transfer.compliance import (
     compliance_function,
     kernel_compliance,
     leave_one_out,
+    scott_bandwidth,
     task_compliance,
 )
 from qtl.transfer.rules import Bayesian, Forgetting, Free, HyperparameterRule, NoTransfer
@@ -26,5 +27,6 @@ __all__ = [
     "compliance_function",
     "kernel_compliance",
     "leave_one_out",
+    "scott_bandwidth",
     "task_compliance",
 ]
