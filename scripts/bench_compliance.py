@@ -137,12 +137,14 @@ def compliance_verdict(family: Family, rows: dict[float, list[dict]]) -> dict[st
 
 
 def compliance_section(
-    family: Family, rows: dict[float, list[dict]], verdict: dict[str, bool], seeds: list[int]
+    family: Family, rows: dict[float, list[dict]], verdict: dict[str, bool], seeds: list[int], header: str
 ) -> str:
-    """The Λ table of one family, markdown."""
+    """The Λ table of one family, markdown; ``header``: the command, date and commit that made it."""
     first = rows[family.near[0]][0]
     lines = [
         f"## Task compliance: {family.task}, {family.label(family.source_value)} source",
+        "",
+        header,
         "",
         f"Sources: `{benchlib.display_path(family.sources)}/seed_<k>` (last checkpoint: episode "
         f"{first['source_episode']} of seed {first['seed']}, m = {first['source_tuples']} tuples). Target tuples: "
@@ -307,9 +309,8 @@ def main() -> None:
         values = [family.source_value, *family.near, *family.far]
         rows = {v: [initial_compliance(family, v, s, args.overrides) for s in args.seeds] for v in values}
         verdict = compliance_verdict(family, rows)
-        header = f"`{benchlib.command_line()}` — {benchlib.today()}, commit {benchlib.commit()}.\n\n"
-        section = compliance_section(family, rows, verdict, args.seeds)
-        section = section.replace("\n\n", "\n\n" + header, 1)
+        header = f"`{benchlib.command_line()}` — {benchlib.today()}, commit {benchlib.commit()}."
+        section = compliance_section(family, rows, verdict, args.seeds, header)
         benchlib.write_section(f"bench_compliance-{name}", section)
         print(section, flush=True)
         entry = {"date": benchlib.today(), "command": benchlib.command_line(), "machine": benchlib.machine(),

@@ -19,7 +19,7 @@ from pathlib import Path
 import torch
 
 from qtl.features import AngleFeatures
-from qtl.transfer.compliance import BANDWIDTHS, COMPLIANCES, DEFAULT_COMPLIANCE, kernel_compliance, task_compliance
+from qtl.transfer.compliance import BANDWIDTHS, COMPLIANCES, DEFAULT_COMPLIANCE, compliance_value
 from qtl.transfer.source import SourceRun
 
 
@@ -45,12 +45,9 @@ def main() -> None:
         target = SourceRun.load(path)
         source.check_compatible(target.task)
         model = target.model(features)
-        def value(rho: float, model=model) -> float:
-            if args.compliance == "kernel":
-                return kernel_compliance(source_model, model, bandwidth=args.bandwidth, resolution=rho).value
-            return task_compliance(source_model, model, temperature=args.temperature, resolution=rho).value
-
-        values = {rho: value(rho) for rho in args.resolution}
+        values = {rho: compliance_value(args.compliance, source_model, model, bandwidth=args.bandwidth,
+                                        temperature=args.temperature, resolution=rho)
+                  for rho in args.resolution}
         rows.append({"target": str(path), "episode": target.episode, "n": len(target.dataset),
                      "compliance": {str(rho): value for rho, value in values.items()}})
     how = args.compliance + (f", bandwidth {args.bandwidth}" if args.compliance == "kernel" else "")

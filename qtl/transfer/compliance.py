@@ -15,9 +15,9 @@ known reward shared by both tasks only the transition factor remains.
 
 Two estimates live here. :func:`kernel_compliance` follows that definition with the source GP in
 place of the kernel regression: its predictive mean replaces the weighted source displacements,
-its predictive variance (noise included) is the kernel's width, and λ_i is the source predictive
-density of Δ_i relative to its mode, a value in (0, 1] that is 1 where the source predicts Δ_i
-exactly; it is the default. :func:`task_compliance` compares two hypotheses with equal prior instead:
+its predictive variance (noise included) plus the kernel's bandwidth (below) is the width, and λ_i
+is that density of Δ_i relative to its mode, a value in (0, 1] that is 1 where the source predicts
+Δ_i exactly; it is the default. :func:`task_compliance` compares two hypotheses with equal prior instead:
 the source GP generated Δ_j (its predictive, noise included) or the target GP did (its
 leave-one-out predictive, so that the target does not explain its own data trivially); Λ is the
 mean over j of the tempered posterior probability of the source hypothesis.
@@ -142,7 +142,7 @@ class KernelCompliance:
     """Task compliance Λ after Lazaric et al. (2008) and its per-tuple terms (Eq. 14).
 
     ``value``: Λ, the mean of ``probabilities``; ``probabilities``: `n`, λ_i ∝ P(S | τ_i), each in
-    (0, 1]; ``log_kernel``: `n x E`, log of output a's kernel factor of tuple i, −(Δ_ia − μ_ia)² / (2 v_ia);
+    (0, 1]; ``log_kernel``: `n x E`, log of output a's kernel factor of tuple i, −(Δ_ia − μ_ia)² / (2 (v_ia + h_a²));
     ``bandwidth``: `E`, h_a, the kernel density estimate's bandwidth per output (zeros for ``"none"``);
     ``resolution``: ρ.
     """
@@ -219,3 +219,13 @@ def compliance_function(name: str = DEFAULT_COMPLIANCE) -> Callable[..., Complia
         return COMPLIANCES[name]
     except KeyError:
         raise ValueError(f"unknown task compliance {name!r}: choose one of {sorted(COMPLIANCES)}") from None
+
+
+def compliance_value(
+    name: str, source: DynamicsGP, target: DynamicsGP, *, bandwidth: str = "scott",
+    temperature: float | None = None, resolution: float = 0.0,
+) -> float:
+    """Λ (Eq. 14) by the compliance called ``name``, each given only the options it takes."""
+    if compliance_function(name) is kernel_compliance:
+        return kernel_compliance(source, target, bandwidth=bandwidth, resolution=resolution).value
+    return task_compliance(source, target, temperature=temperature, resolution=resolution).value

@@ -18,8 +18,7 @@ from qtl.transfer.compliance import (
     BANDWIDTHS,
     COMPLIANCES,
     DEFAULT_COMPLIANCE,
-    kernel_compliance,
-    task_compliance,
+    compliance_value,
 )
 from qtl.transfer.rules import HyperparameterRule
 from qtl.transfer.source import SourceRun
@@ -112,11 +111,8 @@ class TransferPlan:
         """Task compliance Λ (Eq. 14) of the target model's tuples; NaN without a source."""
         if self._source_model is None:
             return math.nan
-        if self.compliance_name == "kernel":
-            return kernel_compliance(self._source_model, target, bandwidth=self.bandwidth,
-                                     resolution=self.resolution).value
-        return task_compliance(self._source_model, target, temperature=self.temperature,
-                               resolution=self.resolution).value
+        return compliance_value(self.compliance_name, self._source_model, target, bandwidth=self.bandwidth,
+                                temperature=self.temperature, resolution=self.resolution)
 
     def update(self, learned: GPHyperparameters, num_tuples: int, compliance: float = math.nan) -> GPHyperparameters:
         """θ of the next model: θ_0 = θ_s (line 2, Eq. 6), then the rule on θ_p (line 13); PILCO: θ_p.
