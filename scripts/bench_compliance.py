@@ -14,7 +14,8 @@ Beside them, per target, the median over tuples (and seeds) of the largest per-o
 saturate on our near-deterministic simulators.
 
 **Learning** (``--learn``, mountain car by default): per target and seed, PILCO, the θ-only transfer
-(``approach`` with ``transfer.policy=false``) and the same transfer with the gate
+(``approach`` with ``transfer.policy=false``), the approach as its preset (arm ``qtl``: θ_s and ψ_s for
+QTL-PILCO, the paper's Table 4 runs) and the θ-only transfer with the gate
 ``transfer.min_compliance=<--gate>``, each through the real CLI (``qtl.launch.ensure_run``: a finished run
 made by the same overrides is reused, an interrupted one resumed). The gate value is one per family,
 passed on the command line, chosen from the Λ table before these runs; ``--gate-on far`` runs the gated arm on
@@ -83,7 +84,7 @@ FAMILIES = {
     "cartpole": Family("cartpole", "pole_mass", "kg", 0.5, (0.8, 1.0, 1.5, 2.0), (5.0,),
                        benchlib.ROOT / "runs" / "bench_cartpole" / "cartpole-fast"),
 }
-ARMS = ("pilco", "transfer", "gated")  # the learning runs per target and seed
+ARMS = ("pilco", "transfer", "qtl", "gated")  # the learning runs per target and seed
 
 
 def target_config(family: Family, value: float, seed: int, extra: list[str] | None = None):
@@ -195,7 +196,8 @@ def learn(family: Family, args: argparse.Namespace) -> tuple[dict, str]:
     root = args.runs_dir / family.task
     values = [*family.near, *family.far]
     transfer = [f"approach={args.approach}", "transfer.policy=false", "transfer.compliance=kernel"]
-    arm_overrides = {"pilco": [], "transfer": transfer, "gated": [*transfer, f"transfer.min_compliance={args.gate}"]}
+    arm_overrides = {"pilco": [], "transfer": transfer, "gated": [*transfer, f"transfer.min_compliance={args.gate}"],
+                     "qtl": [f"approach={args.approach}", "transfer.compliance=kernel"]}
 
     def run(job: tuple[str, float, int]) -> None:
         arm, value, seed = job
@@ -205,7 +207,7 @@ def learn(family: Family, args: argparse.Namespace) -> tuple[dict, str]:
         ensure_run(overrides, root / arm / f"{family.axis}{value:g}" / f"seed_{seed}", args.episodes + 1)
 
     # PILCO and transfer first (seed-major, so that partial results pair up), then the gated runs, far targets first.
-    jobs = [(arm, value, seed) for seed in args.seeds for value in values for arm in ("pilco", "transfer")
+    jobs = [(arm, value, seed) for seed in args.seeds for value in values for arm in ("pilco", "transfer", "qtl")
             if arm in args.arms]
     gated = [*family.far, *(family.near if args.gate_on == "all" else ())]
     if "gated" in args.arms:
@@ -224,7 +226,8 @@ def learn(family: Family, args: argparse.Namespace) -> tuple[dict, str]:
         "",
         f"`{benchlib.command_line()}` — {benchlib.today()}, commit {benchlib.commit()}. Per target and seed: PILCO; "
         f"θ-only transfer (`approach={args.approach} transfer.policy=false`, random initial episode); the same with "
-        f"`transfer.min_compliance={args.gate}` (the gate, kernel compliance). {budget} episodes per run (1 random "
+        f"`transfer.min_compliance={args.gate}` (the gate, kernel compliance); arm qtl: `approach={args.approach}` as "
+        f"its preset (θ_s and ψ_s, initial episode run by ψ_s). {budget} episodes per run (1 random "
         f"+ {args.episodes} learned), one torch thread each, {args.jobs} in parallel. Runs: "
         f"`{benchlib.display_path(root)}`. AUC: trapezoid over the {budget} episodes; final: mean of the last 3.",
         "",

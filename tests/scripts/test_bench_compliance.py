@@ -69,16 +69,17 @@ def test_learning_runs_pair_up_and_a_gate_at_the_first_model_is_pilco(runs, tmp_
     sources, _, _ = runs
     family = dataclasses.replace(bench_compliance.FAMILIES["cartpole"], sources=sources, near=(2.0,), far=())
     args = argparse.Namespace(runs_dir=tmp_path, approach="qtl_bayesian", gate=1.0, episodes=1, jobs=2, seeds=[SEED],
-                              arms=list(bench_compliance.ARMS), overrides=list(BUDGET), figures=tmp_path / "results",
+                              arms=list(bench_compliance.ARMS), overrides=list(TINY), figures=tmp_path / "results",
                               gate_on="all")
     args.figures.mkdir()
     results, table = bench_compliance.learn(family, args)
     arms = results["2.0"]
-    assert set(arms) == {"pilco", "transfer", "gated"}
+    assert set(arms) == {"pilco", "transfer", "qtl", "gated"}
     assert arms["gated"][0]["fell_back_after"] == 1 and arms["transfer"][0]["fell_back_after"] is None
     assert arms["gated"][0]["returns"] == arms["pilco"][0]["returns"]  # same seed, θ = θ_p from the first model
     assert arms["transfer"][0]["compliance"][1] == arms["gated"][0]["compliance"][1]  # the same tuples, one Λ
-    assert "| 2.0 kg | gated |" in table and table.count("\n- 2.0 kg, ") == 3
+    assert arms["qtl"][0]["returns"][0] != arms["transfer"][0]["returns"][0]  # ψ_s runs the initial episode
+    assert "| 2.0 kg | gated |" in table and table.count("\n- 2.0 kg, ") == 4
     assert (tmp_path / "results" / "compliance_cartpole_learning_curves.png").stat().st_size > 0
     assert "](results/compliance_cartpole_learning_curves.png)" in table
-    assert sorted(discover(tmp_path / "cartpole").approaches) == ["gated", "pilco", "transfer"]
+    assert sorted(discover(tmp_path / "cartpole").approaches) == ["gated", "pilco", "qtl", "transfer"]
