@@ -12,7 +12,7 @@ import pytest
 from qtl.loop import run
 from qtl.metrics import Curve
 from qtl.report import discover
-from tests.helpers import BUDGET, TINY, tiny_config
+from tests.helpers import TINY, tiny_config
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "scripts"))
 import bench_compliance
