@@ -134,7 +134,8 @@ def run(cfg: DictConfig, output_dir: Path, *, resume: bool = False) -> RunResult
                     theta_p = model.hyperparameters
                     compliance = plan.compliance(model)  # Eq. 14 (NaN without a source)
                     # -- Lines 2, 13 and 5: θ_0 = θ_s, then the updating rule; f inferred with θ. --
-                    theta = plan.update(theta_p, len(data), compliance)
+                    # (Λ below transfer.min_compliance here at the first model: θ = θ_p and ψ = PILCO's ψ_0.)
+                    theta = plan.update(theta_p, len(data), compliance, policy)
                     if theta is not theta_p:
                         model.hyperparameters = theta
                     fit_s = time.perf_counter() - tic

@@ -90,13 +90,15 @@ class TransferPlan:
         self._source_model = None if self.source is None else self.source.model(features, dtype, device)
         self.theta: GPHyperparameters | None = None  # θ_{i−1}: what the previous model used
         self.fallen_back = False  # the compliance gate switched this run to PILCO
+        self._pilco_psi: dict[str, torch.Tensor] = {}  # PILCO's ψ_0, where a gated run's search starts instead of ψ_s
 
     # -- line 1: ψ ----------------------------------------------------------------------------
 
     def initial_policy(self, policy: nn.Module) -> None:
-        """ψ_0 = ψ_s when the policy is transferred (Algorithm 1, line 1); else leave PILCO's ψ_0."""
+        """ψ_0 = ψ_s when the policy is transferred (Algorithm 1, line 1); else PILCO's ψ_0 (kept for the gate)."""
         if self.transfer_policy and self.source is not None:
             self.source.check_policy(policy)
+            self._pilco_psi = {k: v.detach().clone() for k, v in policy.state_dict().items()}
             policy.load_state_dict(self.source.policy)
 
     # -- lines 2, 12, 13: θ -----------------------------------------------------------------
@@ -114,20 +116,28 @@ class TransferPlan:
         return compliance_value(self.compliance_name, self._source_model, target, bandwidth=self.bandwidth,
                                 temperature=self.temperature, resolution=self.resolution)
 
-    def update(self, learned: GPHyperparameters, num_tuples: int, compliance: float = math.nan) -> GPHyperparameters:
+    def update(
+        self, learned: GPHyperparameters, num_tuples: int, compliance: float = math.nan, policy: nn.Module | None = None
+    ) -> GPHyperparameters:
         """θ of the next model: θ_0 = θ_s (line 2, Eq. 6), then the rule on θ_p (line 13); PILCO: θ_p.
 
-        At the first model, Λ (``compliance``, Eq. 14) below ``transfer.min_compliance`` drops θ_s for good.
+        At the first model, Λ (``compliance``, Eq. 14) below ``transfer.min_compliance`` switches the run to
+        PILCO for good: θ = θ_p from then on, and a transferred ψ_s in ``policy`` is replaced by PILCO's ψ_0
+        (the policy search starts where PILCO's would).
         """
-        if not self.transfer_theta or self.fallen_back:
-            self.theta = learned
-            return learned
-        # The gate reads Λ once, at the first model: its tuples are the initial episodes', the same actions
-        # for every target; later tuples follow the run's own policy, whose states move Λ either way.
-        if self.theta is None and self.min_compliance is not None and compliance < float(self.min_compliance):
-            log.warning("task compliance %.3f < transfer.min_compliance=%s at the first model: θ_s is dropped, the "
-                        "run continues as PILCO (θ = θ_p)", compliance, self.min_compliance)
+        # The gate reads Λ once, at the first model: its tuples are the initial episodes' (random actions, or
+        # ψ_s's when transferred); later tuples follow the run's own policies, whose states move Λ either way.
+        if (self.theta is None and self.source is not None and self.min_compliance is not None
+                and not self.fallen_back and compliance < float(self.min_compliance)):
+            dropped = " and ".join(w for w, on in (("θ_s", self.transfer_theta), ("ψ_s", self.transfer_policy)) if on)
+            log.warning("task compliance %.3f < transfer.min_compliance=%s at the first model: %s dropped, the "
+                        "run continues as PILCO", compliance, self.min_compliance, dropped or "nothing")
             self.fallen_back = True
+            if self.transfer_policy and policy is not None:
+                if not self._pilco_psi:
+                    raise TransferError("the gate cannot restore PILCO's ψ_0: call initial_policy(policy) first")
+                policy.load_state_dict(self._pilco_psi)
+        if not self.transfer_theta or self.fallen_back:
             self.theta = learned
             return learned
         if self.theta is None:

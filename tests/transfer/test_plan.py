@@ -108,6 +108,37 @@ def test_transferred_policy_is_psi_s(finished_source):
         assert torch.equal(made.state_dict()[name], value)
 
 
+def made_policy() -> SquashedPolicy:
+    """PILCO's ψ_0 for the task, made as the loop makes it."""
+    draws = TASK.start_distribution().sample(10, generator=torch.Generator().manual_seed(0))
+    inner = instantiate(tiny_config().policy)(TASK.feature_dim, TASK.action_dim, start_features=FEATURES(draws))
+    return SquashedPolicy(inner, torch.as_tensor(TASK.action_bound))
+
+
+@pytest.mark.parametrize(("rule", "hyperparameters"), [(Bayesian(), True), (NoTransfer(), False)])
+def test_compliance_gate_also_drops_psi_s(finished_source, rule, hyperparameters):
+    """A gated run with ψ_s transferred searches from PILCO's ψ_0, with θ_s (QTL) or without (policy transfer)."""
+    policy = made_policy()
+    pilco_psi = {k: v.clone() for k, v in policy.state_dict().items()}
+    gated = plan(rule, source=str(finished_source), hyperparameters=hyperparameters, policy=True, min_compliance=0.3)
+    gated.initial_policy(policy)
+    assert not torch.equal(policy.state_dict()["policy.targets"], pilco_psi["policy.targets"])  # ψ_s
+    theta_p = learned(0.7)
+    assert gated.update(theta_p, 8, compliance=0.1, policy=policy) is theta_p and gated.fallen_back
+    for name, value in pilco_psi.items():
+        assert torch.equal(policy.state_dict()[name], value)
+
+
+def test_compliance_gate_above_keeps_psi_s(finished_source):
+    policy = made_policy()
+    kept = plan(Bayesian(), source=str(finished_source), policy=True, min_compliance=0.3)
+    kept.initial_policy(policy)
+    kept.update(learned(0.7), 8, compliance=0.9, policy=policy)
+    assert not kept.fallen_back
+    for name, value in kept.source.policy.items():
+        assert torch.equal(policy.state_dict()[name], value)
+
+
 @pytest.mark.parametrize(
     ("overrides", "message"),
     [
