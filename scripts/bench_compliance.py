@@ -97,6 +97,8 @@ def target_config(family: Family, value: float, seed: int, extra: list[str] | No
 def initial_compliance(family: Family, value: float, seed: int, extra: list[str] | None = None) -> dict:
     """Λ of the target's initial (random) episode under the seed's source, three ways, and the tuples' distances.
 
+    Also ``kernel_source_policy``: Λ (kernel) of the initial episode run by ψ_s instead, what the gate of a run
+    that transfers ψ_s (the ``qtl`` arm) reads at its first model.
     ``extra``: Hydra overrides of the target runs (as ``--learn`` passes them), so that the episode is theirs.
     """
     cfg = target_config(family, value, seed, extra)
@@ -111,6 +113,13 @@ def initial_compliance(family: Family, value: float, seed: int, extra: list[str]
     target = parts.fit_dynamics(data, torch_generator(seed, 1, MODEL_STREAM))  # the loop's first model
     source_model = source.model(parts.features)
     kernel = kernel_compliance(source_model, target)
+    policy = parts.initial_policy()  # ψ_s in it, as a run with transfer.policy=true starts
+    source.check_policy(policy)
+    policy.load_state_dict(source.policy)
+    by_psi_s = run_episode(parts.task.make_env(), parts.task, parts.actor(policy), derive_seed(seed, 0, ENV_STREAM))
+    psi_data = TransitionDataset(parts.task.state_dim, parts.task.action_dim, parts.task.angle_dims)
+    psi_data.add_episode(by_psi_s.states, by_psi_s.actions)
+    psi_target = parts.fit_dynamics(psi_data, torch_generator(seed, 1, MODEL_STREAM))
     mean, var = source_model.predict(target.train_x, include_noise=True)
     error = (target.train_y - mean).abs()  # n x E
     return {
@@ -119,6 +128,7 @@ def initial_compliance(family: Family, value: float, seed: int, extra: list[str]
         "kernel": kernel.value,
         "kernel_no_bandwidth": kernel_compliance(source_model, target, bandwidth="none").value,
         "likelihood_ratio": task_compliance(source_model, target).value,
+        "kernel_source_policy": kernel_compliance(source_model, psi_target).value,
         "bandwidth": kernel.bandwidth.tolist(),
         "median_distance_in_predictive_sd": float((error / var.sqrt()).amax(-1).median()),
         "median_distance_in_bandwidths": float((error / kernel.bandwidth).amax(-1).median()),
@@ -150,13 +160,15 @@ def compliance_section(
         f"Sources: `{benchlib.display_path(family.sources)}/seed_<k>` (last checkpoint: episode "
         f"{first['source_episode']} of seed {first['seed']}, m = {first['source_tuples']} tuples). Target tuples: "
         f"each target's initial random episode of the same seed ({first['tuples']} tuples), what the gate reads at "
-        f"the first model. Seeds {', '.join(map(str, seeds))}; mean ± std over seeds.",
+        f"the first model. Last columns: the same from the initial episode run by the source's policy ψ_s, what the "
+        f"gate of a run that transfers ψ_s (QTL-PILCO as the paper runs it) reads. Seeds "
+        f"{', '.join(map(str, seeds))}; mean ± std over seeds.",
         "",
         "**Required: " + "; ".join(f"{k} — {'met' if ok else 'NOT met'}" for k, ok in verdict.items()) + ".**",
         "",
         "| target | Λ, kernel (Scott bandwidth) | per seed | Λ, kernel, no bandwidth | Λ, likelihood ratio "
-        "| median distance (predictive sd) | median distance (bandwidths) |",
-        "| --- | ---: | --- | ---: | ---: | ---: | ---: |",
+        "| median distance (predictive sd) | median distance (bandwidths) | Λ, kernel, episode by ψ_s | per seed |",
+        "| --- | ---: | --- | ---: | ---: | ---: | ---: | ---: | --- |",
     ]
     for value, per_seed in rows.items():
         kind = " (far)" if value in family.far else (" (source task)" if value == family.source_value else "")
@@ -166,7 +178,9 @@ def compliance_section(
             + f" | {benchlib.mean_std([r['kernel_no_bandwidth'] for r in per_seed], 3)} | "
             f"{benchlib.mean_std([r['likelihood_ratio'] for r in per_seed], 3)} | "
             f"{statistics.median(r['median_distance_in_predictive_sd'] for r in per_seed):.1f} | "
-            f"{statistics.median(r['median_distance_in_bandwidths'] for r in per_seed):.2f} |"
+            f"{statistics.median(r['median_distance_in_bandwidths'] for r in per_seed):.2f} | "
+            f"{benchlib.mean_std([r['kernel_source_policy'] for r in per_seed], 2)} | "
+            + " ".join(f"{r['kernel_source_policy']:.2f}" for r in per_seed) + " |"
         )
     return "\n".join(lines)
 

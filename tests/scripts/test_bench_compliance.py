@@ -30,6 +30,7 @@ def runs(tmp_path_factory) -> tuple[Path, Path, Path]:
                 "task.env.pole_mass=2.0", f"seed={SEED}", "episodes=2"]
     run(tiny_config(*transfer), root / "transfer")
     run(tiny_config(*transfer, "transfer.min_compliance=1.0"), root / "gated")
+    run(tiny_config(*[o for o in transfer if o != "transfer.policy=false"]), root / "qtl")  # ψ_s transferred too
     return sources, root / "transfer", root / "gated"
 
 
@@ -42,6 +43,9 @@ def test_initial_compliance_is_what_the_run_logs_at_its_first_model(runs) -> Non
     assert 0.0 < row["kernel"] <= 1.0 and row["kernel"] >= row["kernel_no_bandwidth"]
     assert 0.0 <= row["likelihood_ratio"] <= 1.0
     assert row["tuples"] == 8 and row["seed"] == SEED and len(row["bandwidth"]) == 4
+    by_psi_s = Curve.read(transfer.parent / "qtl").compliance  # a run that transfers ψ_s: its first episode is ψ_s's
+    assert row["kernel_source_policy"] == pytest.approx(by_psi_s[1], rel=1e-9)
+    assert row["kernel_source_policy"] != row["kernel"]
 
 
 def test_the_gate_is_read_back_from_the_checkpoints(runs) -> None:
