@@ -18,6 +18,7 @@ from omegaconf import DictConfig, OmegaConf
 from tqdm.auto import tqdm
 from tqdm.contrib.logging import logging_redirect_tqdm
 
+from qtl import health
 from qtl.build import build, transfer_plan
 from qtl.checkpoint import latest_checkpoint, load_checkpoint, refuse_existing_run, save_checkpoint, set_rng_state
 from qtl.data import TransitionDataset
@@ -80,6 +81,7 @@ def run(cfg: DictConfig, output_dir: Path, *, resume: bool = False) -> RunResult
     data = TransitionDataset(task.state_dim, task.action_dim, task.angle_dims)
     rows: list[dict[str, Any]] = []
     timings: list[dict[str, Any]] = []
+    health_rows: list[dict[str, Any]] = []
     theta: GPHyperparameters | None = None  # θ of the latest model (none before the first fit)
     previous: PreviousFit | None = None  # θ_p (and Z) of the latest fit, where model.warm_start starts from
     first = 0
@@ -87,6 +89,7 @@ def run(cfg: DictConfig, output_dir: Path, *, resume: bool = False) -> RunResult
         data = TransitionDataset.from_state(checkpoint["dataset"], task.angle_dims)
         policy.load_state_dict(checkpoint["policy"])
         rows, timings = list(checkpoint["metrics"]), list(checkpoint["timings"])
+        health_rows = list(checkpoint.get("health", []))  # absent in checkpoints made before health.csv
         theta = None if checkpoint["theta"] is None else GPHyperparameters(**checkpoint["theta"])
         if checkpoint.get("previous_fit") is not None:  # absent in checkpoints made before model.warm_start
             previous = PreviousFit.from_state_dict(checkpoint["previous_fit"])
@@ -99,14 +102,15 @@ def run(cfg: DictConfig, output_dir: Path, *, resume: bool = False) -> RunResult
                + theta_columns(task.state_dim, task.gp_input_dim, THETA_P_PREFIX)
                + (start_columns(task.state_dim) if task.start_estimated else []))
     log.info("%s", plan.describe())
-    recorder = RunRecorder(output_dir, columns, rows, timings)
+    recorder = RunRecorder(output_dir, columns, rows, timings, health_rows)
     if not rows:  # HParams session, chart layout, config and plan: once per run, not again on resume
         start_dashboards(recorder.writer, cfg, task, plan)
     env = task.make_env()
     show_progress = bool(cfg.progress)
 
     try:
-        with _progress_bar(total, first, show_progress) as bar:
+        health.take()  # counts from here on only
+        with _progress_bar(total, first, show_progress) as bar, health.jitter_watch():
             for episode in range(first, total):
                 row: dict[str, Any] = {"episode": episode}
                 episode_tic = time.perf_counter()
@@ -182,7 +186,8 @@ def run(cfg: DictConfig, output_dir: Path, *, resume: bool = False) -> RunResult
                     final_distance=float(task.distance(real.states[-1:])[0]),
                 )
                 recorder.record(row, {"model_fit_s": fit_s, "policy_search_s": search_s,
-                                      "episode_s": time.perf_counter() - episode_tic}, figure)
+                                      "episode_s": time.perf_counter() - episode_tic}, figure,
+                                {"resumed": int(checkpoint is not None and episode == first), **health.take()})
                 write_outcomes(recorder.writer, outcomes(recorder.rows, recorder.timings), episode)
                 save_checkpoint(output_dir, episode, {
                     "config": OmegaConf.to_yaml(cfg),
@@ -193,6 +198,7 @@ def run(cfg: DictConfig, output_dir: Path, *, resume: bool = False) -> RunResult
                     "policy": {k: v.detach().cpu().clone() for k, v in policy.state_dict().items()},
                     "metrics": recorder.rows,
                     "timings": recorder.timings,
+                    "health": recorder.health,
                 })
                 log.info(
                     "episode %d (%s): return %.2f, predicted %.2f, success %s, fit %.1f s, policy search %.1f s",

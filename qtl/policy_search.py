@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor, nn
 
+from qtl import health
 from qtl.errors import NonFiniteObjective
 from qtl.lbfgs import Evaluation, LBFGSOptions, lbfgs
 from qtl.plateau import PlateauMonitor, PlateauRule
@@ -75,6 +76,11 @@ def _child_generator(generator: torch.Generator | None) -> torch.Generator:
     """A generator seeded from ``generator`` (or torch's global one): the dropout masks' stream."""
     seed = int(torch.randint(2**62, (1,), generator=generator))
     return torch.Generator().manual_seed(seed)
+
+
+def _count_failure(err: BaseException) -> None:
+    """Count an evaluation that failed: a non-finite value or gradient, or a failed factorisation."""
+    health.count(health.NONFINITE if isinstance(err, NonFiniteObjective) else health.LINALG)
 
 
 def _checked(value: Tensor) -> Tensor:
@@ -176,6 +182,8 @@ class _RestartingSearch:
                     seen.calls += 1
                     seen.value, seen.state = value, {k: v.detach().clone() for k, v in policy.state_dict().items()}
             except INVALID_PSI_ERRORS as err:
+                _count_failure(err)
+                health.count(health.SEARCH_STOPPED)
                 log.warning("policy search run %d stopped at a numerically invalid ψ (%s); "
                             "it keeps the best ψ it evaluated", run, err)
             run_values.append(seen.value)
@@ -299,6 +307,7 @@ class _RestartBatch:
             self._check_shape(values)
             (-values.sum()).backward()
         except INVALID_PSI_ERRORS as err:
+            _count_failure(err)
             log.warning("batched policy search: the rollout failed (%s); evaluating each restart alone", err)
             alone = self._alone(objective)
             return [self._answer(position, value, grad) for position, (value, grad) in enumerate(alone)]
@@ -308,10 +317,16 @@ class _RestartBatch:
 
     def _answer(self, position: int, value: Tensor | None, grad: Tensor | None) -> Evaluation | None:
         """The evaluation an optimiser receives for the restart at ``position``; a finite value is offered."""
-        if value is None or grad is None or not bool(torch.isfinite(value)):
+        if value is None or grad is None:  # failed alone: counted there
+            return None
+        if not bool(torch.isfinite(value)):
+            health.count(health.NONFINITE)
             return None
         self._offer(position, float(value))
-        return (-float(value), grad) if bool(torch.isfinite(grad).all()) else None
+        if not bool(torch.isfinite(grad).all()):
+            health.count(health.NONFINITE)
+            return None
+        return -float(value), grad
 
     def _check_shape(self, values: Tensor) -> None:
         if values.shape != (len(self.active),):
@@ -330,6 +345,7 @@ class _RestartBatch:
         try:
             values = objective()
         except INVALID_PSI_ERRORS as err:
+            _count_failure(err)
             log.warning("batched policy search: the rollout failed (%s); re-evaluating each restart", err)
             raise _DropRestarts(self._failing_alone(objective)) from err
         self._check_shape(values)
@@ -338,6 +354,7 @@ class _RestartBatch:
             if finite[position]:
                 self._offer(position, float(values[position].detach()))
         if not finite.all():
+            health.count(health.NONFINITE, int((~finite).sum()))
             raise _DropRestarts((~finite).nonzero().flatten().tolist())
         return values
 
@@ -354,7 +371,8 @@ class _RestartBatch:
                 try:
                     value = objective()
                     (-value.sum()).backward()
-                except INVALID_PSI_ERRORS:
+                except INVALID_PSI_ERRORS as err:
+                    _count_failure(err)
                     found.append((None, None))
                     continue
                 trainable = [p for p in single.values() if p.requires_grad]
@@ -371,6 +389,8 @@ class _RestartBatch:
                     torch.isfinite(grad).all()):
                 self._offer(position, float(value))
             else:
+                if value is not None and grad is not None:  # evaluated, not finite (a raise was counted in _alone)
+                    health.count(health.NONFINITE)
                 failing.append(position)
         if not failing:
             log.warning("batched policy search: no restart fails alone; every restart stops at its best ψ")
@@ -384,11 +404,13 @@ class _RestartBatch:
             if p.grad is not None:
                 bad |= ~torch.isfinite(p.grad).reshape(len(self.active), -1).all(-1).cpu()
         if bad.any():
+            health.count(health.NONFINITE, int(bad.sum()))
             raise _DropRestarts(bad.nonzero().flatten().tolist())
 
     def drop(self, positions: list[int]) -> list[int]:
         """Remove the restarts at ``positions``; the others go on from their current ψ; the kept positions."""
         for position in positions:
+            health.count(health.SEARCH_STOPPED)
             log.warning("policy search restart %d stopped at a numerically invalid ψ; it keeps the best ψ it "
                         "evaluated", self.active[position])
         kept = [position for position in range(len(self.active)) if position not in set(positions)]
@@ -454,6 +476,7 @@ class LBFGSSearch(_RestartingSearch):
             tick()
             for restart, answer in zip(list(asked), answers, strict=True):
                 if answer is None:
+                    health.count(health.SEARCH_STOPPED)
                     log.warning("policy search restart %d stopped at a numerically invalid ψ; it keeps the best ψ "
                                 "it evaluated", restart)
                     runs[restart].close()

@@ -15,6 +15,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 from torch.utils.tensorboard import SummaryWriter
 
+from qtl.health import EVENTS
 from qtl.models import GPHyperparameters
 
 METRICS_FILE = "metrics.csv"  # the one spelling: qtl.metrics, qtl.report and the scripts import it
@@ -25,6 +26,9 @@ START_PREFIX = "start"  # μ_0, σ_0 estimated from the episodes' initial states
 # reproduces exactly).
 TIMINGS_FILE = "timings.csv"
 TIMING_COLUMNS = ["episode", "model_fit_s", "policy_search_s", "episode_s"]  # episode_s: the whole episode
+# Numerical trouble per episode (qtl.health's counts) and whether the episode began a resumed session.
+HEALTH_FILE = "health.csv"
+HEALTH_COLUMNS = ["episode", "resumed", *EVENTS]
 BASE_COLUMNS = [
     "episode",
     "kind",
@@ -77,9 +81,9 @@ def theta_from_row(row: Mapping[str, float | str], prefix: str = THETA_PREFIX) -
 
 
 class RunRecorder:
-    """Writes one row per episode to ``metrics.csv`` (and ``timings.csv``) and to TensorBoard.
+    """Writes one row per episode to ``metrics.csv`` (and ``timings.csv``, ``health.csv``) and to TensorBoard.
 
-    ``rows`` and ``timings`` are earlier episodes' rows (when resuming): the CSV files are
+    ``rows``, ``timings`` and ``health`` are earlier episodes' rows (when resuming): the CSV files are
     rewritten with exactly them, and TensorBoard events from step ``len(rows)`` on, left by an
     interrupted writer, are purged.
     """
@@ -90,23 +94,35 @@ class RunRecorder:
         columns: Sequence[str],
         rows: Sequence[dict[str, Any]] = (),
         timings: Sequence[dict[str, Any]] = (),
+        health: Sequence[dict[str, Any]] = (),
     ) -> None:
         self.output_dir = Path(output_dir)
         self.columns = list(columns)
         self.rows: list[dict[str, Any]] = [dict(r) for r in rows]
         self.timings: list[dict[str, Any]] = [dict(t) for t in timings]
+        self.health: list[dict[str, Any]] = [dict(h) for h in health]
         self.writer = SummaryWriter(log_dir=str(self.output_dir), purge_step=len(self.rows) if self.rows else None)
         _write_csv(self.output_dir / METRICS_FILE, self.columns, self.rows)
         _write_csv(self.output_dir / TIMINGS_FILE, TIMING_COLUMNS, self.timings)
+        _write_csv(self.output_dir / HEALTH_FILE, HEALTH_COLUMNS, self.health)
 
-    def record(self, row: dict[str, Any], timings: dict[str, float], figure: plt.Figure | None = None) -> None:
-        """Append an episode's row and timings; write scalars (and figure) to TensorBoard; flush."""
+    def record(
+        self,
+        row: dict[str, Any],
+        timings: dict[str, float],
+        figure: plt.Figure | None = None,
+        health: dict[str, int] | None = None,
+    ) -> None:
+        """Append an episode's row, timings and health counts; write scalars (and figure) to TensorBoard; flush."""
         step = int(row["episode"])
         timings = {"episode": step, **timings}
+        health = {"episode": step, "resumed": 0, **{event: 0 for event in EVENTS}, **(health or {})}
         _append_csv(self.output_dir / METRICS_FILE, self.columns, row)
         _append_csv(self.output_dir / TIMINGS_FILE, TIMING_COLUMNS, timings)
+        _append_csv(self.output_dir / HEALTH_FILE, HEALTH_COLUMNS, health)
         self.rows.append(dict(row))
         self.timings.append(timings)
+        self.health.append(health)
         tags = {
             "eval/return": row.get("return"),
             "eval/env_return": row.get("env_return"),
@@ -125,6 +141,7 @@ class RunRecorder:
         }
         tags.update({k: v for k, v in row.items()
                      if k.startswith((f"{THETA_PREFIX}/", f"{THETA_P_PREFIX}/", f"{START_PREFIX}/"))})
+        tags.update({f"health/{event}": health[event] for event in EVENTS})
         for tag, value in tags.items():
             if value is not None and value != "" and math.isfinite(float(value)):
                 self.writer.add_scalar(tag, float(value), step)

@@ -2,7 +2,8 @@
 
 The table below is DESIGN.md's, lowest layer first, with two readings stated: the error types
 and the Gaussian state type (with the RNG seeding, which imports nothing from qtl) are the
-foundation every layer may use, the data and the task included; and ``qtl.checkpoint`` (tensors
+foundation every layer may use, the data and the task included (with ``qtl.health``, the counts of numerical
+trouble that the parts report and the loop records); and ``qtl.checkpoint`` (tensors
 and primitives on disk, importing only the errors) sits below transfer, which reads its source
 runs from checkpoints. A unit (a top-level module or subpackage of ``qtl``, or ``envs``) may import
 units of lower layers, and of its own layer only where SAME_LAYER says so. A unit missing from the
@@ -25,7 +26,7 @@ PACKAGES = ("qtl", "envs")
 
 LAYERS: list[tuple[str, set[str]]] = [
     ("envs", {"envs"}),
-    ("foundation", {"qtl.errors", "qtl.gaussian", "qtl.seeding"}),
+    ("foundation", {"qtl.errors", "qtl.gaussian", "qtl.seeding", "qtl.health"}),
     ("data, task", {"qtl.data", "qtl.task", "qtl.env_wrappers"}),
     ("maths", {"qtl.kernels", "qtl.lbfgs", "qtl.plateau"}),
     ("parts", {"qtl.features", "qtl.models", "qtl.policies", "qtl.rewards"}),

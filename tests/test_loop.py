@@ -11,6 +11,7 @@ import pytest
 import torch
 from omegaconf import DictConfig, OmegaConf
 
+from qtl import health
 from qtl.build import build
 from qtl.checkpoint import latest_checkpoint, load_checkpoint
 from qtl.config import TaskConfig
@@ -71,6 +72,12 @@ def test_resume_continues_exactly_as_an_uninterrupted_run(tmp_path, model):
     whole, split = tmp_path / "whole", tmp_path / "split"
     assert (whole / "metrics.csv").read_text() == (split / "metrics.csv").read_text()
     assert len(read_csv(split / "timings.csv")) == 4
+    # health.csv: the same counts, and the episode that began the resumed session marked
+    whole_health, split_health = read_csv(whole / "health.csv"), read_csv(split / "health.csv")
+    assert [r["resumed"] for r in whole_health] == ["0"] * 4 and [r["resumed"] for r in split_health] == [
+        "0", "0", "1", "0"]
+    assert [{**r, "resumed": ""} for r in whole_health] == [{**r, "resumed": ""} for r in split_health]
+    assert list(whole_health[0]) == ["episode", "resumed", *health.EVENTS]
     a = load_checkpoint(latest_checkpoint(whole))
     b = load_checkpoint(latest_checkpoint(split))
     for sa, sb in zip(a["dataset"]["states"], b["dataset"]["states"], strict=True):

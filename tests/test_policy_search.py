@@ -15,6 +15,7 @@ import torch
 from hydra.utils import instantiate
 from torch import nn
 
+from qtl import health
 from qtl.errors import NonFiniteObjective
 from qtl.gaussian import Gaussian, GaussianMap
 from qtl.plateau import PlateauRule
@@ -60,8 +61,23 @@ def test_invalid_region_stops_the_run_but_keeps_the_best_point_seen():
 
 def test_nan_everywhere_is_reported():
     point = Point([0.0, 0.0])
+    health.take()
     with pytest.raises(NonFiniteObjective, match="no policy search run"):
         LBFGSSearch(max_iter=5, restarts=2)(point, lambda: point.x.sum() * math.nan)
+    counts = health.take()  # each run's first evaluation is NaN: it stops there
+    assert counts[health.NONFINITE] == 2 and counts[health.SEARCH_STOPPED] == 2 and counts[health.LINALG] == 0
+
+
+def test_a_failed_factorisation_is_counted_apart_from_a_nan():
+    point = Point([0.0, 0.0])
+
+    def objective() -> torch.Tensor:
+        raise torch.linalg.LinAlgError("not positive-definite")
+
+    health.take()
+    with pytest.raises(NonFiniteObjective, match="no policy search run"):
+        AdamSearch(steps=5, restarts=3)(point, objective)
+    assert health.take() == {**dict.fromkeys(health.EVENTS, 0), health.LINALG: 3, health.SEARCH_STOPPED: 3}
 
 
 def test_bad_settings_are_named():
@@ -193,7 +209,12 @@ def test_a_restart_that_fails_is_dropped_and_the_others_go_on(make, failure):
             value = torch.where(hit, math.nan, value)
         return value
 
+    health.take()
     result = search(policy, objective, generator=torch.Generator().manual_seed(0))
+    counts = health.take()
+    assert counts[health.SEARCH_STOPPED] == 1  # the one restart, counted once
+    assert counts[health.NONFINITE if failure == "nan" else health.LINALG] >= 1
+    assert counts[health.LINALG if failure == "nan" else health.NONFINITE] == 0
     assert math.isfinite(result.run_values[bad]) and result.run_values[bad] < 1.0 - 1e-3  # stopped early, best kept
     others = [v for r, v in enumerate(result.run_values) if r != bad]
     assert others == pytest.approx([1.0, 1.0], abs=1e-4)  # the others went on to the maximum

@@ -17,6 +17,7 @@ from linear_operator.utils.cholesky import psd_safe_cholesky
 from linear_operator.utils.errors import NotPSDError
 from torch import Tensor
 
+from qtl import health
 from qtl.models.hyperparameters import GPHyperparameters
 
 log = logging.getLogger(__name__)
@@ -294,6 +295,7 @@ class DynamicsGP(gpytorch.models.ExactGP):
                 self.hyperparameters = GPHyperparameters.from_log(log_theta)
                 value = self._optimise(max_iter)
             except (NotPSDError, ValueError, RuntimeError) as err:
+                health.count(health.GP_FIT_FAILED)
                 log.warning("GP fit restart %d failed and is discarded: %s", attempt, err)
                 continue
             found = self.hyperparameters.log()
@@ -332,6 +334,7 @@ class DynamicsGP(gpytorch.models.ExactGP):
             self.hyperparameters = start
             value = self._optimise(max_iter)
         except (NotPSDError, ValueError, RuntimeError) as err:
+            health.count(health.GP_FIT_FAILED)
             log.warning("warm-started GP fit failed, every output is refitted cold: %s", err)
             value = torch.full((self.num_outputs,), -math.inf, dtype=cold.lengthscales.dtype,
                                device=cold.lengthscales.device)
@@ -350,6 +353,7 @@ class DynamicsGP(gpytorch.models.ExactGP):
             try:
                 part_value = part.fit(restarts=restarts, max_iter=max_iter, generator=generator)
             except RuntimeError as err:
+                health.count(health.GP_FIT_FAILED)
                 log.warning("cold restarts failed: %s", err)
                 part_value = torch.full_like(value[chosen], -math.inf)
             better = torch.isfinite(part_value) & (part_value > value[chosen])

@@ -29,6 +29,7 @@ from linear_operator.utils.cholesky import psd_safe_cholesky
 from linear_operator.utils.errors import NotPSDError
 from torch import Tensor
 
+from qtl import health
 from qtl.models.dynamics_gp import (
     DEFAULT_MAX_ITER,
     DEFAULT_RESTARTS,
@@ -136,6 +137,7 @@ class SparseDynamicsGP(DynamicsGP):
                     self.covar_module.inducing_points.copy_(start_z)
                 value = self._optimise(max_iter)
             except (NotPSDError, ValueError, RuntimeError) as err:
+                health.count(health.GP_FIT_FAILED)
                 log.warning("sparse GP fit restart %d failed and is discarded: %s", attempt, err)
                 continue
             total = float(value.sum())
@@ -175,6 +177,7 @@ class SparseDynamicsGP(DynamicsGP):
                     self.covar_module.inducing_points.copy_(inducing.to(cold_z))
             value = self._optimise(max_iter)
         except (NotPSDError, ValueError, RuntimeError) as err:
+            health.count(health.GP_FIT_FAILED)
             log.warning("warm-started sparse GP fit failed, refitted cold: %s", err)
             value = torch.full((self.num_outputs,), -math.inf, dtype=cold_z.dtype, device=cold_z.device)
         total, limit = float(value.sum()), float(reference.sum()) - self.num_outputs * tolerance
