@@ -21,6 +21,7 @@ from qtl.report.autopilot import flies_helicopter
 from qtl.report.discover import OVERRIDES_FILE, SEED_PREFIX, Experiment, discover, run_overrides
 from qtl.report.figures import FIGURE_STEM, plot_learning_curves
 from qtl.report.record import EXPERIMENT_FILE
+from qtl.report.reliability import reliability_json, reliability_markdown
 from qtl.report.stats import (
     CELL_KEYS,
     METRICS,
@@ -79,6 +80,7 @@ def tables_json(experiment: Experiment) -> dict[str, object]:
                        for label, row in compliance_table(experiment).iterrows()},
         "tables": {str(n): TITLES[n].format(label=experiment.labels[0]) for n in table_numbers(experiment)},
         "reference": None if reference is None else reference.to_dict(),
+        "reliability": reliability_json(experiment),
     }
 
 
@@ -127,7 +129,7 @@ def _commands_markdown(experiment: Experiment) -> str:
 
 
 def report_markdown(experiment: Experiment, figures: Sequence[Path]) -> str:
-    """``report.md``: what was found, Tables 1-6, the learning-curve figure and the commands that made the runs."""
+    """``report.md``: what was found, Tables 1-6, the learning curves, the reliability counts and the commands."""
     title = experiment.name or experiment.root.name
     png, *others = figures
     caption = "Learning curves: mean total reward per episode over seeds, error bars ±1 standard deviation."
@@ -140,6 +142,8 @@ def report_markdown(experiment: Experiment, figures: Sequence[Path]) -> str:
         "## Tables\n\n" + "\n\n".join(tables_markdown(experiment)),
         f"## Learning curves\n\n![learning curves]({png.name})\n\n{caption} "
         + " ".join(f"[{p.suffix[1:].upper()}]({p.name})" for p in others),
+        "## Reliability\n\nOver every run found (sources and targets), from each run's `health.csv`:\n\n"
+        + reliability_markdown(experiment),
         "## Commands\n\n" + _commands_markdown(experiment),
     ]
     return "\n\n".join(sections) + "\n"
