@@ -23,10 +23,15 @@ the far targets only (a near target whose Λ at the first model is above the gat
 the gate reads the first model only, and runs are deterministic). Reported: first success per
 seed, AUC, final performance, Λ at the first model and the episode where a gated run fell back.
 
+**Exploration** (``--explore KEY=VALUE ...``, on its own): PILCO and θ-only transfer on other targets of
+the family, any env argument (a changed friction, a weaker actuator, a longer pole), in the search for a
+target where transfer hurts; their own table.
+
 Writes ``docs/bench/compliance.json`` and its sections of ``docs/benchmarks.md``.
 
     python scripts/bench_compliance.py [--families mountaincar cartpole] [--seeds 0 1 2 3 4]
     python scripts/bench_compliance.py --families mountaincar --learn --gate 0.5 --episodes 10 --jobs 2
+    python scripts/bench_compliance.py --families cartpole --explore friction=5.0 max_force=5.0 --seeds 0 1
 """
 
 from __future__ import annotations
@@ -85,6 +90,7 @@ FAMILIES = {
                        benchlib.ROOT / "runs" / "bench_cartpole" / "cartpole-fast"),
 }
 ARMS = ("pilco", "transfer", "qtl", "gated")  # the learning runs per target and seed
+EXPLORE_ARMS = ("pilco", "transfer")  # the runs per extra target of --explore
 
 
 def target_config(family: Family, value: float, seed: int, extra: list[str] | None = None):
@@ -283,6 +289,96 @@ def learn(family: Family, args: argparse.Namespace) -> tuple[dict, str]:
     return results, "\n".join(lines)
 
 
+def env_override(family: Family, key: str, value: float) -> str:
+    """``task.env.<key>=<value>``, with a ``+`` where the task's config does not list the key (any env kwarg)."""
+    with initialize_config_module(config_module="qtl.configs", version_base="1.3"):
+        listed = key in compose(config_name="train", overrides=[f"task={family.task}"]).task.env
+    return f"{'' if listed else '+'}task.env.{key}={value:g}"
+
+
+def explore(family: Family, args: argparse.Namespace) -> tuple[dict, str]:
+    """PILCO and θ-only transfer on the targets of ``--explore KEY=VALUE``: does θ_s hurt there? Table, markdown."""
+    root = args.runs_dir / family.task / "explore"
+    transfer = [f"approach={args.approach}", "transfer.policy=false", "transfer.compliance=kernel"]
+    env = {target: env_override(family, *target) for target in args.explore}  # composed here, not in the threads
+
+    def run_dir(arm: str, key: str, value: float, seed: int) -> Path:
+        return root / arm / f"{key}{value:g}" / f"seed_{seed}"
+
+    def run(job: tuple[str, tuple[str, float], int]) -> None:
+        arm, (key, value), seed = job
+        extra = [*transfer, f"transfer.source={family.sources / f'seed_{seed}'}"] if arm == "transfer" else []
+        overrides = [f"task={family.task}", env[key, value], f"seed={seed}",
+                     f"episodes={args.episodes}", *extra, *args.overrides]
+        ensure_run(overrides, run_dir(arm, key, value, seed), args.episodes + 1)
+
+    jobs = [(arm, target, seed) for seed in args.seeds for target in args.explore for arm in EXPLORE_ARMS]
+    with ThreadPoolExecutor(max_workers=args.jobs) as pool:
+        list(pool.map(run, jobs))
+    budget = args.episodes + 1
+    results: dict = {}
+    lines = [
+        f"## Compliance: {family.task}, other targets tried for negative transfer",
+        "",
+        f"`{benchlib.command_line()}` — {benchlib.today()}, commit {benchlib.commit()}. Per target and seed: PILCO and "
+        f"θ-only transfer (`approach={args.approach} transfer.policy=false`) from the "
+        f"{family.label(family.source_value)} source of the same seed. {budget} episodes per run (1 random + "
+        f"{args.episodes} learned), one torch thread each, {args.jobs} in parallel. Runs: "
+        f"`{benchlib.display_path(root)}`. AUC: trapezoid over the {budget} episodes; final: mean of the last 3.",
+        "",
+        "| target | arm | first success per seed | solved | AUC | final | Λ at the first model |",
+        "| --- | --- | --- | ---: | ---: | ---: | ---: |",
+    ]
+    for key, value in args.explore:
+        for arm in EXPLORE_ARMS:
+            per_seed = []
+            for seed in args.seeds:
+                curve = Curve.read(run_dir(arm, key, value, seed), budget)
+                per_seed.append({"seed": seed, "returns": curve.returns, "compliance": curve.compliance,
+                                 **curve.summary()})
+            results.setdefault(f"{key}={value:g}", {})[arm] = per_seed
+            first_lambda = [r["compliance"][1] for r in per_seed if r["compliance"][1] == r["compliance"][1]]
+            lines.append("| " + " | ".join([
+                f"{key} = {value:g}", arm, benchlib.first_successes(per_seed),
+                f"{sum(r['first_success'] is not None for r in per_seed)}/{len(per_seed)}",
+                benchlib.mean_std([r["auc"] for r in per_seed]),
+                benchlib.mean_std([r["final_performance"] for r in per_seed]),
+                benchlib.mean_std(first_lambda, 2) if first_lambda else "—",
+            ]) + " |")
+    lines += ["", "Returns per episode (target, arm, seed: curve):", ""]
+    for target, arms in results.items():
+        for arm, per_seed in arms.items():
+            lines += [f"- {target}, {arm}, seed {r['seed']}: " + " ".join(f"{v:.1f}" for v in r["returns"])
+                      for r in per_seed]
+    return results, "\n".join(lines)
+
+
+def parse_targets(items: list[str]) -> list[tuple[str, float]]:
+    """``KEY=VALUE`` items as (env kwarg, number); ValueError naming the first bad one."""
+    targets = []
+    for item in items:
+        key, _, value = item.partition("=")
+        try:
+            targets.append((key, float(value)))
+        except ValueError:
+            raise ValueError(f"--explore takes KEY=VALUE, VALUE a number (e.g. friction=5.0), got {item!r}") from None
+        if not key.isidentifier():
+            raise ValueError(f"--explore takes KEY=VALUE with KEY an env argument (e.g. friction=5.0), got {item!r}")
+    return targets
+
+
+def measure(family: Family, args: argparse.Namespace) -> dict:
+    """The Λ table of ``family`` over ``args.seeds``, written to docs/benchmarks.md; its JSON entry."""
+    values = [family.source_value, *family.near, *family.far]
+    rows = {v: [initial_compliance(family, v, s, args.overrides) for s in args.seeds] for v in values}
+    verdict = compliance_verdict(family, rows)
+    header = f"`{benchlib.command_line()}` — {benchlib.today()}, commit {benchlib.commit()}."
+    section = compliance_section(family, rows, verdict, args.seeds, header)
+    benchlib.write_section(f"bench_compliance-{family.task}", section)
+    print(section, flush=True)
+    return {"date": benchlib.today(), "command": benchlib.command_line(), "machine": benchlib.machine(),
+            "sources": str(family.sources), "verdict": verdict, "compliance": {str(v): r for v, r in rows.items()}}
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--families", nargs="+", choices=list(FAMILIES), default=list(FAMILIES))
@@ -301,7 +397,17 @@ def main() -> None:
                         help="where the learning-curve figure goes")
     parser.add_argument("--sources", nargs="*", default=[], metavar="FAMILY=DIR",
                         help="another directory of seed_<k> source runs for a family")
+    parser.add_argument("--explore", nargs="+", default=[], metavar="KEY=VALUE",
+                        help="other targets of the family, any env argument (e.g. friction=5.0 max_force=5.0): PILCO "
+                             "and θ-only transfer on each, for a target where transfer hurts (a table of their own; "
+                             "only this: the Λ table and --learn are other calls)")
     args, args.overrides = parser.parse_known_args()
+    try:
+        args.explore = parse_targets(args.explore)
+    except ValueError as err:
+        parser.error(str(err))
+    if args.explore and args.learn:
+        parser.error("--explore runs on its own: leave out --learn (run it in another call)")
     args.arms = [arm for arm in ARMS if arm in args.arms]
     if args.learn and "gated" in args.arms and (args.gate is None or not 0.0 <= args.gate <= 1.0):
         parser.error("--learn needs --gate in [0, 1]: the transfer.min_compliance chosen from the Λ table")
@@ -323,23 +429,20 @@ def main() -> None:
     stored = json.loads(out.read_text()) if out.exists() else {}
     for name in args.families:
         family = families[name]
-        values = [family.source_value, *family.near, *family.far]
-        rows = {v: [initial_compliance(family, v, s, args.overrides) for s in args.seeds] for v in values}
-        verdict = compliance_verdict(family, rows)
-        header = f"`{benchlib.command_line()}` — {benchlib.today()}, commit {benchlib.commit()}."
-        section = compliance_section(family, rows, verdict, args.seeds, header)
-        benchlib.write_section(f"bench_compliance-{name}", section)
-        print(section, flush=True)
-        entry = {"date": benchlib.today(), "command": benchlib.command_line(), "machine": benchlib.machine(),
-                 "sources": str(family.sources), "verdict": verdict,
-                 "compliance": {str(v): r for v, r in rows.items()}}
-        if args.learn:
-            entry["gate"] = args.gate
-            entry["learning"], table = learn(family, args)
-            benchlib.write_section(f"bench_compliance_gate-{name}", table)
+        if args.explore:  # only the exploration; the Λ table and the learning runs are left as stored
+            entry = stored.get(name, {})
+            entry["explore"], table = explore(family, args)
+            benchlib.write_section(f"bench_compliance_explore-{name}", table)
             print(table, flush=True)
-        elif "learning" in stored.get(name, {}):
-            entry["gate"], entry["learning"] = stored[name]["gate"], stored[name]["learning"]
+        else:
+            entry = {**measure(family, args), **{k: v for k, v in stored.get(name, {}).items() if k == "explore"}}
+            if args.learn:
+                entry["gate"] = args.gate
+                entry["learning"], table = learn(family, args)
+                benchlib.write_section(f"bench_compliance_gate-{name}", table)
+                print(table, flush=True)
+            elif "learning" in stored.get(name, {}):
+                entry["gate"], entry["learning"] = stored[name]["gate"], stored[name]["learning"]
         stored[name] = entry
         out.parent.mkdir(parents=True, exist_ok=True)
         out.write_text(json.dumps(stored, indent=2) + "\n")

@@ -87,3 +87,26 @@ def test_learning_runs_pair_up_and_a_gate_at_the_first_model_is_pilco(runs, tmp_
     assert (tmp_path / "results" / "compliance_cartpole_learning_curves.png").stat().st_size > 0
     assert "](results/compliance_cartpole_learning_curves.png)" in table
     assert sorted(discover(tmp_path / "cartpole").approaches) == ["gated", "pilco", "qtl", "transfer"]
+
+
+def test_exploration_runs_any_env_argument_through_the_cli(runs, tmp_path) -> None:
+    """--explore: PILCO and θ-only transfer on a target set by an env argument the task config does not list."""
+    sources, _, _ = runs
+    family = dataclasses.replace(bench_compliance.FAMILIES["cartpole"], sources=sources)
+    assert bench_compliance.env_override(family, "friction", 5.0) == "+task.env.friction=5"
+    assert bench_compliance.env_override(family, "pole_mass", 2.0) == "task.env.pole_mass=2"
+    args = argparse.Namespace(runs_dir=tmp_path, approach="qtl_bayesian", episodes=1, jobs=2, seeds=[SEED],
+                              overrides=list(TINY), explore=[("friction", 5.0)])
+    results, table = bench_compliance.explore(family, args)
+    arms = results["friction=5"]
+    assert set(arms) == {"pilco", "transfer"} and len(arms["pilco"][0]["returns"]) == 2
+    assert arms["pilco"][0]["returns"] != arms["transfer"][0]["returns"]  # θ_s changed the first model
+    run_dir = tmp_path / "cartpole" / "explore" / "pilco" / "friction5" / f"seed_{SEED}"
+    assert "+task.env.friction=5" in (run_dir / ".hydra" / "overrides.yaml").read_text()
+    assert "| friction = 5 | transfer |" in table and table.count("\n- friction=5, ") == 2
+
+
+@pytest.mark.parametrize("item", ["friction", "friction=lots", "=5", "a b=1"])
+def test_a_bad_exploration_target_is_named(item) -> None:
+    with pytest.raises(ValueError, match=f"--explore takes KEY=VALUE.*got '{item}'"):
+        bench_compliance.parse_targets([item])
