@@ -64,11 +64,17 @@ def resume_config(run_dir: Path, overrides: list[str]) -> DictConfig:
 
 
 def comparable(cfg: DictConfig) -> dict:
-    """What a run computes from: ``cfg`` resolved, less the keys a resume may change, the env's defaults filled in."""
+    """What a run computes from: ``cfg`` resolved, less the keys a resume may change, the env's defaults filled in.
+
+    Without a transfer source the rest of the ``transfer`` node is left out: such a run is PILCO whatever it says
+    (e.g. a compliance estimate whose default changed since the run was made).
+    """
     plain = OmegaConf.to_container(cfg, resolve=True)
     for key in RESUME_OVERRIDABLE:
         plain.pop(key, None)
     plain["task"]["env"] = env_settings(plain["task"])
+    if plain.get("transfer", {}).get("source") is None:  # no source: the other transfer keys are inert (PILCO; a
+        plain["transfer"] = {"source": None}  # flag that would need one is refused before any work)
     return plain
 
 

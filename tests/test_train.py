@@ -43,6 +43,21 @@ def test_auto_resume_continues_a_run_whose_config_was_written_the_old_way(tmp_pa
         auto_resume(tmp_path, tiny_config("seed=1"))
 
 
+def test_auto_resume_ignores_the_transfer_settings_of_a_run_without_a_source(tmp_path):
+    """A PILCO run made when the compliance default was another is the same run; with a source it is not."""
+    run(tiny_config("episodes=0"), tmp_path / "pilco")
+    old = OmegaConf.to_container(tiny_config("episodes=0"))
+    old["transfer"]["compliance"] = "likelihood_ratio"
+    del old["transfer"]["compliance_bandwidth"]
+    checkpoint = load_checkpoint(latest_checkpoint(tmp_path / "pilco"))
+    assert comparable(stored_config({"config": OmegaConf.to_yaml(old)})) == comparable(stored_config(checkpoint))
+    run(tiny_config("episodes=1"), tmp_path / "source")
+    with_source = [f"transfer.source={tmp_path / 'source'}", "approach=qtl_bayesian", "task.env.pole_mass=2.0"]
+    run(tiny_config("episodes=0", *with_source), tmp_path / "qtl")
+    with pytest.raises(CheckpointError, match=r"another configuration \(differs: \['transfer'\]\)"):
+        auto_resume(tmp_path / "qtl", tiny_config(*with_source, "transfer.compliance=likelihood_ratio"))
+
+
 @pytest.mark.parametrize(
     ("overrides", "message"),
     [(["episodes=-1"], "episodes=-1: the learned episodes"), (["random_episodes=0"], "random_episodes must be >= 1"),
