@@ -297,9 +297,14 @@ def env_override(family: Family, key: str, value: float) -> str:
 
 
 def explore(family: Family, args: argparse.Namespace) -> tuple[dict, str]:
-    """PILCO and θ-only transfer on the targets of ``--explore KEY=VALUE``: does θ_s hurt there? Table, markdown."""
+    """PILCO and θ-only transfer (and, with ``--gate``, the gated transfer) on the targets of ``--explore``.
+
+    Does θ_s hurt there, and does the gate catch it? Its table, markdown.
+    """
     root = args.runs_dir / family.task / "explore"
     transfer = [f"approach={args.approach}", "transfer.policy=false", "transfer.compliance=kernel"]
+    gated = [] if args.gate is None else [*transfer, f"transfer.min_compliance={args.gate}"]
+    arms = [*EXPLORE_ARMS, *(["gated"] if gated else [])]
     env = {target: env_override(family, *target) for target in args.explore}  # composed here, not in the threads
 
     def run_dir(arm: str, key: str, value: float, seed: int) -> Path:
@@ -307,12 +312,13 @@ def explore(family: Family, args: argparse.Namespace) -> tuple[dict, str]:
 
     def run(job: tuple[str, tuple[str, float], int]) -> None:
         arm, (key, value), seed = job
-        extra = [*transfer, f"transfer.source={family.sources / f'seed_{seed}'}"] if arm == "transfer" else []
+        source = [f"transfer.source={family.sources / f'seed_{seed}'}"]
+        extra = {"pilco": [], "transfer": [*transfer, *source], "gated": [*gated, *source]}[arm]
         overrides = [f"task={family.task}", env[key, value], f"seed={seed}",
                      f"episodes={args.episodes}", *extra, *args.overrides]
         ensure_run(overrides, run_dir(arm, key, value, seed), args.episodes + 1)
 
-    jobs = [(arm, target, seed) for seed in args.seeds for target in args.explore for arm in EXPLORE_ARMS]
+    jobs = [(arm, target, seed) for seed in args.seeds for target in args.explore for arm in arms]
     with ThreadPoolExecutor(max_workers=args.jobs) as pool:
         list(pool.map(run, jobs))
     budget = args.episodes + 1
@@ -323,19 +329,21 @@ def explore(family: Family, args: argparse.Namespace) -> tuple[dict, str]:
         f"`{benchlib.command_line()}` — {benchlib.today()}, commit {benchlib.commit()}. Per target and seed: PILCO and "
         f"θ-only transfer (`approach={args.approach} transfer.policy=false`) from the "
         f"{family.label(family.source_value)} source of the same seed. {budget} episodes per run (1 random + "
-        f"{args.episodes} learned), one torch thread each, {args.jobs} in parallel. Runs: "
+        f"{args.episodes} learned), one torch thread each, {args.jobs} in parallel"
+        + ("" if not gated else f"; gated: the transfer with `transfer.min_compliance={args.gate}`") + ". Runs: "
         f"`{benchlib.display_path(root)}`. AUC: trapezoid over the {budget} episodes; final: mean of the last 3.",
         "",
-        "| target | arm | first success per seed | solved | AUC | final | Λ at the first model |",
-        "| --- | --- | --- | ---: | ---: | ---: | ---: |",
+        "| target | arm | first success per seed | solved | AUC | final | Λ at the first model "
+        "| fell back after episode |",
+        "| --- | --- | --- | ---: | ---: | ---: | ---: | --- |",
     ]
     for key, value in args.explore:
-        for arm in EXPLORE_ARMS:
+        for arm in arms:
             per_seed = []
             for seed in args.seeds:
                 curve = Curve.read(run_dir(arm, key, value, seed), budget)
                 per_seed.append({"seed": seed, "returns": curve.returns, "compliance": curve.compliance,
-                                 **curve.summary()})
+                                 "fell_back_after": fell_back_at(run_dir(arm, key, value, seed)), **curve.summary()})
             results.setdefault(f"{key}={value:g}", {})[arm] = per_seed
             first_lambda = [r["compliance"][1] for r in per_seed if r["compliance"][1] == r["compliance"][1]]
             lines.append("| " + " | ".join([
@@ -344,10 +352,12 @@ def explore(family: Family, args: argparse.Namespace) -> tuple[dict, str]:
                 benchlib.mean_std([r["auc"] for r in per_seed]),
                 benchlib.mean_std([r["final_performance"] for r in per_seed]),
                 benchlib.mean_std(first_lambda, 2) if first_lambda else "—",
+                " ".join("—" if r["fell_back_after"] is None else str(r["fell_back_after"]) for r in per_seed)
+                if arm == "gated" else "",
             ]) + " |")
     lines += ["", "Returns per episode (target, arm, seed: curve):", ""]
-    for target, arms in results.items():
-        for arm, per_seed in arms.items():
+    for target, by_arm in results.items():
+        for arm, per_seed in by_arm.items():
             lines += [f"- {target}, {arm}, seed {r['seed']}: " + " ".join(f"{v:.1f}" for v in r["returns"])
                       for r in per_seed]
     return results, "\n".join(lines)
@@ -409,6 +419,8 @@ def main() -> None:
     if args.explore and args.learn:
         parser.error("--explore runs on its own: leave out --learn (run it in another call)")
     args.arms = [arm for arm in ARMS if arm in args.arms]
+    if args.gate is not None and not 0.0 <= args.gate <= 1.0:
+        parser.error(f"--gate must be in [0, 1], got {args.gate}")
     if args.learn and "gated" in args.arms and (args.gate is None or not 0.0 <= args.gate <= 1.0):
         parser.error("--learn needs --gate in [0, 1]: the transfer.min_compliance chosen from the Λ table")
     families = dict(FAMILIES)

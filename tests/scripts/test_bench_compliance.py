@@ -96,14 +96,15 @@ def test_exploration_runs_any_env_argument_through_the_cli(runs, tmp_path) -> No
     assert bench_compliance.env_override(family, "friction", 5.0) == "+task.env.friction=5"
     assert bench_compliance.env_override(family, "pole_mass", 2.0) == "task.env.pole_mass=2"
     args = argparse.Namespace(runs_dir=tmp_path, approach="qtl_bayesian", episodes=1, jobs=2, seeds=[SEED],
-                              overrides=list(TINY), explore=[("friction", 5.0)])
+                              overrides=list(TINY), explore=[("friction", 5.0)], gate=1.0)
     results, table = bench_compliance.explore(family, args)
     arms = results["friction=5"]
-    assert set(arms) == {"pilco", "transfer"} and len(arms["pilco"][0]["returns"]) == 2
+    assert set(arms) == {"pilco", "transfer", "gated"} and len(arms["pilco"][0]["returns"]) == 2
     assert arms["pilco"][0]["returns"] != arms["transfer"][0]["returns"]  # θ_s changed the first model
+    assert arms["gated"][0]["returns"] == arms["pilco"][0]["returns"] and arms["gated"][0]["fell_back_after"] == 1
     run_dir = tmp_path / "cartpole" / "explore" / "pilco" / "friction5" / f"seed_{SEED}"
     assert "+task.env.friction=5" in (run_dir / ".hydra" / "overrides.yaml").read_text()
-    assert "| friction = 5 | transfer |" in table and table.count("\n- friction=5, ") == 2
+    assert "| friction = 5 | transfer |" in table and table.count("\n- friction=5, ") == 3
 
 
 @pytest.mark.parametrize("item", ["friction", "friction=lots", "=5", "a b=1"])
