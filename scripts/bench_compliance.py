@@ -324,7 +324,7 @@ def explore(family: Family, args: argparse.Namespace) -> tuple[dict, str]:
     budget = args.episodes + 1
     results: dict = {}
     lines = [
-        f"## Compliance: {family.task}, other targets tried for negative transfer",
+        f"## Compliance: {family.task}, further targets: PILCO, θ-only transfer and the gate",
         "",
         f"`{benchlib.command_line()}` — {benchlib.today()}, commit {benchlib.commit()}. Per target and seed: PILCO and "
         f"θ-only transfer (`approach={args.approach} transfer.policy=false`) from the "
