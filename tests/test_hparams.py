@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import math
 import re
+import time
 from pathlib import Path
 
 import pytest
@@ -102,6 +103,9 @@ def test_scalar_layout_pairs_theta_and_theta_p_of_each_hyperparameter():
 
 def test_a_run_and_its_resume_leave_one_hparams_session_with_the_final_outcomes(tmp_path):
     run(tiny_config("episodes=1", "seed=4", "task.env.pole_mass=0.8"), tmp_path)
+    # Event files are read in name order: <seconds>.<host>.<pid>.<writer count>. In one process and one second the
+    # count decides, as text ("10" < "9"); a resume is another process, or at least another second.
+    time.sleep(1.1)
     run(tiny_config("episodes=2", "seed=4", "task.env.pole_mass=0.8"), tmp_path, resume=True)
     events = EventAccumulator(str(tmp_path), size_guidance={"tensors": 0, "scalars": 0})
     events.Reload()
