@@ -152,6 +152,7 @@ def build(cfg: DictConfig) -> Parts:
         check(**make_propagator.keywords)
     _check_dropout(cfg)
     make_propagator = _with_search_cost(make_propagator, task, cfg)
+    make_propagator = _with_kinematics(make_propagator, task, cfg)
     return Parts(
         seed=int(cfg.seed),
         dtype=dtype,
@@ -195,6 +196,16 @@ def _with_search_cost(make_propagator: PropagatorFactory, task: Task, cfg: DictC
     target, widths = task.search_cost
     cost = AngleDistanceReward(task.state_dim, task.angle_dims, target.tolist(), widths.tolist())
     return functools.partial(make_propagator, search_cost="task", task_search_cost=cost)
+
+
+def _with_kinematics(make_propagator: PropagatorFactory, task: Task, cfg: DictConfig) -> PropagatorFactory:
+    """Particles with speed integration get the task's kinematics bound; a UserError where it declares none."""
+    if cfg.propagation.get("integration", "delta") != "speed":
+        return make_propagator
+    if task.kinematics is None:
+        raise UserError(f"propagation.integration=speed, but task {task.name} declares no kinematics: add "
+                        "task.kinematics (positions, velocities) or set propagation.integration=delta")
+    return functools.partial(make_propagator, kinematics=task.kinematics)
 
 
 def _check_dropout(cfg: DictConfig) -> None:

@@ -85,6 +85,17 @@ class SearchRewardConfig:
 
 
 @dataclass
+class KinematicsConfig:
+    """Which state dimensions are positions and which their velocities (particles' speed integration)."""
+
+    positions: list[int] = field(default=MISSING, metadata=doc("state indices of the positions q"))
+    velocities: list[int] = field(default=MISSING, metadata=doc("state indices of their velocities q̇, in order"))
+    period: Optional[float] = field(  # noqa: UP045
+        default=None, metadata=doc("control period T in s (null: the env's dt × action_repeat)"),
+    )
+
+
+@dataclass
 class SuccessConfig:
     """Success: the reward-space distance stays within ``threshold`` for the last ``last_steps``."""
 
@@ -128,6 +139,9 @@ class TaskConfig:
     )
     search_reward: Optional[SearchRewardConfig] = field(  # noqa: UP045
         default=None, metadata=doc("an angle/position cost a particle search may score (propagation.search_cost)"),
+    )
+    kinematics: Optional[KinematicsConfig] = field(  # noqa: UP045
+        default=None, metadata=doc("positions and velocities, for propagation.integration=speed (null: none)"),
     )
     policy_size: int = field(default=50, metadata=doc("RBF basis functions of the policy"))
     success: SuccessConfig = field(default_factory=SuccessConfig, metadata=doc("when an episode counts as a success"))
@@ -193,6 +207,10 @@ class ParticlesConfig(PropagationConfig):
         default="widened", metadata=doc("widened | task | auto: the search's base reward, the task's widened, or the "
                                         "task's declared search_reward (angle/position cost, as MC-PILCO's), or that "
                                         "when the task declares one"),
+    )
+    integration: str = field(
+        default="delta", metadata=doc("delta | speed: x + Δ in every dimension, or the GP's Δ of the velocities "
+                                      "with positions integrated, q + T q̇ + (T/2) Δq̇ (MC-PILCO; task.kinematics)"),
     )
     seed: int = field(default=II("seed"), metadata=doc("seed of the base noise"))
 

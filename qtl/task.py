@@ -7,7 +7,7 @@ import inspect
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import gymnasium
 import numpy as np
@@ -22,6 +22,14 @@ from qtl.gaussian import Gaussian
 
 # Floor on the std of a start distribution estimated from the episodes' initial states (``task.start.min_std``).
 DEFAULT_START_MIN_STD = 0.01
+
+
+class Kinematics(NamedTuple):
+    """Which state dimensions are positions and which their velocities, and the control period T in s."""
+
+    positions: tuple[int, ...]  # `K` state indices
+    velocities: tuple[int, ...]  # `K`: position k's velocity is velocities[k]
+    period: float  # T, the time between two learner steps (held env steps included)
 
 
 @dataclass(frozen=True)
@@ -50,6 +58,7 @@ class Task:
     start_min_std: float = DEFAULT_START_MIN_STD  # `σ_0`'s floor when estimated
     reset_options: dict[str, Any] | None = None  # ``env.reset(seed=..., options=...)``; None: the env's default
     search_cost: tuple[np.ndarray, np.ndarray] | None = None  # (target, widths) `D` each, inf width: left out
+    kinematics: Kinematics | None = None  # positions, their velocities and T (particles' speed integration)
 
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any]) -> Task:
@@ -86,6 +95,7 @@ class Task:
             start_mean, start_std = _start_distribution(cfg.get("start"), env.unwrapped, state_dim)
             reward = _reward(cfg.get("reward"), env.unwrapped, env_id, state_dim)
             state_names = _state_names(cfg.get("state_names"), env.unwrapped, state_dim)
+            kinematics = _kinematics(cfg.get("kinematics"), env.unwrapped, state_dim, action_repeat)
         finally:
             env.close()
         if float(success["threshold"]) <= 0 or not 1 <= int(success["last_steps"]) <= horizon:
@@ -121,6 +131,7 @@ class Task:
             start_min_std=start_min_std,
             reset_options=None if reset_options is None else dict(reset_options),
             search_cost=_search_cost(cfg.get("search_reward"), state_dim),
+            kinematics=kinematics,
         )
 
     @property
@@ -384,3 +395,34 @@ def _search_cost(cfg: Mapping[str, Any] | None, state_dim: int) -> tuple[np.ndar
     return (np.array([float(t) if u else 0.0 for u, t in zip(used, target, strict=True)]),
             np.array([float(w) if u else math.inf for u, w in zip(used, widths, strict=True)]))
 
+
+
+def _kinematics(cfg: Mapping[str, Any] | None, env: gymnasium.Env, state_dim: int, action_repeat: int
+                ) -> Kinematics | None:
+    """``task.kinematics`` checked, its period T the given one or the env's ``dt`` × ``action_repeat``."""
+    if cfg is None:
+        return None
+    positions = tuple(int(p) for p in cfg.get("positions") or ())
+    velocities = tuple(int(v) for v in cfg.get("velocities") or ())
+    period = cfg.get("period")
+    if period is None:
+        dt = getattr(env, "dt", None)
+        if dt is None:
+            raise TaskError("task.kinematics.period is not set and the env has no dt: set task.kinematics.period "
+                            "to the control period in seconds")
+        period = float(dt) * action_repeat
+    check_kinematics(state_dim, positions, velocities, float(period))
+    return Kinematics(positions, velocities, float(period))
+
+
+def check_kinematics(state_dim: int, positions: Sequence[int], velocities: Sequence[int], period: float) -> None:
+    """Positions and velocities paired, distinct, disjoint, below ``state_dim``; T > 0: else a TaskError saying what."""
+    if not positions or len(positions) != len(velocities):
+        raise TaskError(f"task.kinematics needs as many velocities as positions, at least one: got positions "
+                        f"{list(positions)}, velocities {list(velocities)}")
+    both = [*positions, *velocities]
+    if len(set(both)) != len(both) or not all(0 <= d < state_dim for d in both):
+        raise TaskError(f"task.kinematics positions {list(positions)} and velocities {list(velocities)} must be "
+                        f"distinct state indices below {state_dim}")
+    if not (0 < period < math.inf):
+        raise TaskError(f"task.kinematics.period must be a control period > 0 in seconds, got {period}")

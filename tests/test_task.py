@@ -12,7 +12,7 @@ import pytest
 
 from qtl.episodes import random_actor, run_episode
 from qtl.errors import TaskError
-from qtl.task import DEFAULT_START_MIN_STD, Task, constructor_parameters, env_settings
+from qtl.task import DEFAULT_START_MIN_STD, Kinematics, Task, constructor_parameters, env_settings
 from tests.toy_envs import spinner_task
 
 CARTPOLE = {
@@ -435,3 +435,29 @@ def test_search_reward_is_parsed_with_null_entries_left_out():
 def test_bad_search_rewards_are_refused(search):
     with pytest.raises(TaskError, match=r"task\.search_reward needs"):
         Task.from_config({**CARTPOLE, "search_reward": search})
+
+
+def test_kinematics_take_the_envs_control_period_times_the_action_repeat():
+    kinematics = {"positions": [0, 2], "velocities": [1, 3]}
+    task = Task.from_config({**CARTPOLE, "env": {**CARTPOLE["env"], "dt": 0.05}, "kinematics": kinematics})
+    assert task.kinematics == Kinematics((0, 2), (1, 3), 0.05)
+    held = Task.from_config({**CARTPOLE, "horizon": 20, "action_repeat": 3, "kinematics": kinematics})
+    assert held.kinematics.period == pytest.approx(0.3)
+    given = Task.from_config({**CARTPOLE, "kinematics": {**kinematics, "period": 0.2}})
+    assert given.kinematics.period == 0.2
+    assert Task.from_config(CARTPOLE).kinematics is None
+
+
+@pytest.mark.parametrize(("kinematics", "message"), [
+    ({"positions": [0], "velocities": []}, "as many velocities as positions"),
+    ({"positions": [0, 2], "velocities": [1, 2]}, "distinct state indices below 4"),
+    ({"positions": [0], "velocities": [1], "period": -0.1}, "period must be a control period > 0"),
+])
+def test_bad_kinematics_are_refused(kinematics, message):
+    with pytest.raises(TaskError, match=message):
+        Task.from_config({**CARTPOLE, "kinematics": kinematics})
+
+
+def test_kinematics_without_a_period_need_an_env_with_dt(point_env):
+    with pytest.raises(TaskError, match=r"task\.kinematics\.period is not set and the env has no dt"):
+        Task.from_config({**point(), "kinematics": {"positions": [0], "velocities": [0]}})

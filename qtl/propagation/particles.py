@@ -31,6 +31,13 @@ Two ways to sample the GP (``sampling``):
   (n = 250, P = 400) float32 moves ∂V/∂ψ by ~1e-2 relative (the float64 torch twin by ~3e-11), still
   ~10× below the spread between two draws of the functions (~0.14).
 
+Speed integration (``integration="speed"``, MC-PILCO's speed-integration model; :mod:`qtl.propagation.integration`):
+the GP's draws are used for every state dimension but the positions q (its outputs there are left unused), and a
+position follows its velocity, q_{t+1} = q_t + T q̇_t + (T/2) Δq̇_t, so that a particle's position and velocity stay
+consistent; ``kinematics`` (the task's positions, velocities and control period T) says which dimensions. The
+base noise keeps its `... x D` layout and the modelled outputs read their own columns of it. With
+``expected_reward`` the step's predictive is N(x A + m J, Jᵀ diag(v) J): the draws are linear in the state.
+
 Variance control by common random numbers: the base noise, ε_0 `P x D` and ε_1..ε_H
 `H x P x E`, is a deterministic function of (``seed``, draw index). With ``resample_every = 0``
 the draw index never changes, so every evaluation in a policy search sees the same noise and
@@ -65,8 +72,10 @@ from qtl.kernels import gp_predictive
 from qtl.policies.base import Policy
 from qtl.propagation.base import DynamicsSource, Rollout
 from qtl.propagation.gp_cache import propagation_inputs
+from qtl.propagation.integration import SpeedIntegration
 from qtl.propagation.pathwise import MatheronPaths, draw_features, matheron_paths, path_values
 from qtl.rewards import AngleDistanceReward, ExpectedSaturatingReward, RewardMixture
+from qtl.task import Kinematics
 
 # Fewest particles: the per-step covariance needs two.
 MIN_PARTICLES = 2
@@ -85,6 +94,8 @@ SAMPLING = ("marginal", "pathwise")
 DEFAULT_NUM_FEATURES = 1024
 # The dtypes a pathwise function may be evaluated in (float64: the propagation's own dtype, no cast).
 PATH_DTYPES = {"float64": torch.float64, "float32": torch.float32}
+# How a particle's state steps: x + Δ in every dimension, or positions integrated from their velocities.
+INTEGRATION = ("delta", "speed")
 
 
 class BaseNoise(NamedTuple):
@@ -162,7 +173,9 @@ class Particles:
     mixed with ``reward_task_weight`` × the task's own (0: the widened alone; see :func:`search_reward`);
     ``search_cost``: ``widened`` (that), ``task`` (the task's declared angle/position cost
     ``task_search_cost`` in place of the widened reward, e.g. MC-PILCO's cart-pole cost) or ``auto``
-    (the task's when it declares one, else widened);
+    (the task's when it declares one, else widened); ``integration``: ``delta`` (x + Δ in every dimension) or
+    ``speed`` (positions follow their velocities; see the module docstring), with ``kinematics`` (positions,
+    velocities and period, e.g. a :class:`~qtl.task.Kinematics`) needed for ``speed``;
     :meth:`rollout` (predictions, figures) scores the task's reward. ``path_dtype``: ``float64``
     (default) evaluates pathwise functions in the propagation's dtype, ``float32`` in float32 and
     returns them in the propagation's (see the module docstring). ``seed``: of the base noise.
@@ -180,6 +193,7 @@ class Particles:
         reward_task_weight: float = 0.0,
         search_cost: str = "widened",
         path_dtype: str = "float64",
+        integration: str = "delta",
         **_: object,
     ) -> None:
         """The settings' ranges, checked before any work (``qtl.build`` calls it): a UserError naming what to fix."""
@@ -206,6 +220,8 @@ class Particles:
             raise UserError(f"propagation.search_cost must be one of {', '.join(SEARCH_COSTS)}, got {search_cost!r}")
         if path_dtype not in PATH_DTYPES:
             raise UserError(f"propagation.path_dtype must be one of {', '.join(PATH_DTYPES)}, got {path_dtype!r}")
+        if integration not in INTEGRATION:
+            raise UserError(f"propagation.integration must be one of {', '.join(INTEGRATION)}, got {integration!r}")
 
     def __init__(
         self,
@@ -226,12 +242,18 @@ class Particles:
         search_cost: str = "widened",
         task_search_cost: AngleDistanceReward | None = None,
         path_dtype: str = "float64",
+        integration: str = "delta",
+        kinematics: Kinematics | None = None,
         seed: int = 0,
         dtype: torch.dtype | None = None,
     ) -> None:
         self.check_settings(num_particles=num_particles, resample_every=resample_every, seed=seed,
                             sampling=sampling, num_features=num_features, reward_width_scale=reward_width_scale,
-                            reward_task_weight=reward_task_weight, search_cost=search_cost, path_dtype=path_dtype)
+                            reward_task_weight=reward_task_weight, search_cost=search_cost, path_dtype=path_dtype,
+                            integration=integration)
+        if integration == "speed" and kinematics is None:
+            raise UserError("propagation.integration=speed needs the task's kinematics: add task.kinematics "
+                            "(positions, velocities) or set propagation.integration=delta")
         if search_cost == "task" and task_search_cost is None:
             raise UserError("propagation.search_cost=task, but the task declares no search_reward: add "
                             "task.search_reward or set propagation.search_cost=widened (or auto)")
@@ -253,6 +275,12 @@ class Particles:
         self.calls = 0  # evaluations of expected_return so far: they set the draw index
         self._noise: tuple[tuple[int, int], BaseNoise] | None = None
         self._functions: tuple[int, MatheronPaths] | None = None
+
+        self.integration: SpeedIntegration | None = None
+        if integration == "speed":
+            self.integration = SpeedIntegration(self.state_dim, kinematics.positions, kinematics.velocities,
+                                                kinematics.period, self.dtype, data["beta"].device)
+            data = _select_outputs(data, self.integration.outputs)
 
         # Everything that depends only on data and θ is computed here, once.
         self.model_batch_shape = data["beta"].shape[:-2]
@@ -336,6 +364,8 @@ class Particles:
         start = start.to(dtype=self.dtype)
         draw = self.draw_index() if draw is None else draw
         start_noise, step_noise, resampling_noise = self.base_noise(horizon, draw)
+        if self.integration is not None:  # the modelled outputs read their own columns of the `... x D` noise
+            step_noise = step_noise[..., list(self.integration.outputs)]
         functions = self.functions(draw) if self.sampling == "pathwise" else None
         batch = torch.broadcast_shapes(start.batch_shape, self.model_batch_shape, self.policy.batch_shape)
         x = start.mean[..., None, :] + start_noise @ matrix_root(start.cov).mT  # x_0 = μ_0 + L_0 ε_0
@@ -359,17 +389,17 @@ class Particles:
                     var = var + self._noise_variance[..., None]
                 delta = mean + _safe_sqrt(var) * step_noise[t].mT  # Δ ~ N(m, v) reparameterised
                 if self.expected_reward:
-                    means.append(x + mean.mT)
+                    means.append(self._step(x, mean.mT))
                     variances.append(var.mT)
-                x = x + delta.mT
+                x = self._step(x, delta.mT)
             else:
                 step = path_values(z.to(self._eval_dtype), self._path_data, self._path_data_sq,
                                    self._path_signal_variance, functions).to(self.dtype).mT  # f_p: ... x P x E
                 if self.expected_reward:
-                    means.append(x + step)
+                    means.append(self._step(x, step))
                 if noise_steps is not None:  # the observation noise, independent per step, on top of f_p
                     step = step + noise_steps[t]
-                x = x + step
+                x = self._step(x, step)
             if resampling_noise is not None:
                 x = _gaussian_resample(x, resampling_noise[t])
             states.append(x)
@@ -381,9 +411,14 @@ class Particles:
                 var = torch.stack(variances, dim=-2)
             else:  # given its function a particle's step varies by the noise alone: σ_ε² (or 0) at every step
                 var = (self._noise_variance if self.include_noise else torch.zeros_like(self._noise_variance))
-                var = var[..., None, None, :].expand(mean.shape)
-            predictive = Gaussian(mean, torch.diag_embed(var))
+                var = var[..., None, None, :].expand(*mean.shape[:-1], var.shape[-1])
+            cov = torch.diag_embed(var) if self.integration is None else self.integration.covariance(var)
+            predictive = Gaussian(mean, cov)
         return torch.stack(states, dim=-2), torch.stack(actions, dim=-2), predictive
+
+    def _step(self, x: Tensor, delta: Tensor) -> Tensor:
+        """x_{t+1} `... x P x D` from x_t and the GP's draws Δ of the modelled outputs `... x P x E`."""
+        return x + delta if self.integration is None else self.integration.step(x, delta)
 
     def rollout(
         self, start: Gaussian, horizon: int, draw: int | None = None,
@@ -424,3 +459,10 @@ class Particles:
         draw = self.draw_index(evaluation=self.calls)
         self.calls += 1
         return self.rollout(start, horizon, draw, self.search_reward).value
+
+
+def _select_outputs(data: dict[str, Tensor], outputs: Sequence[int]) -> dict[str, Tensor]:
+    """The cache's per-output tensors of ``outputs`` only (the shared inputs `... x n x D_in` as they are)."""
+    index = torch.tensor(list(outputs), dtype=torch.long, device=data["beta"].device)
+    output_dim = {"K_inv": -3, "beta": -2, "lengthscales": -2, "signal_variance": -1, "noise_variance": -1}
+    return {k: v.index_select(output_dim[k], index) if k in output_dim else v for k, v in data.items()}
