@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+import fcntl
 import os
 import random
 import re
+import socket
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -17,6 +21,8 @@ CHECKPOINT_DIR = "checkpoints"
 CHECKPOINT_FORMAT = "qtl.run"
 CHECKPOINT_VERSION = 1
 _NAME = re.compile(r"^episode_(\d{4})\.pt$")
+# Held (flock, exclusive) by the one process that works in a run directory; the OS releases it when that process ends.
+LOCK_FILE = ".qtl.lock"
 
 
 def rng_state() -> dict[str, Any]:
@@ -98,3 +104,34 @@ def refuse_existing_run(run_dir: str | os.PathLike) -> None:
             f"{str(run_dir)!r} already holds a run's checkpoints: resume={run_dir} continues it (resume=auto in "
             "a sweep), or choose another hydra.run.dir; nothing was overwritten"
         )
+
+
+@contextmanager
+def run_lock(run_dir: str | os.PathLike) -> Iterator[None]:
+    """Work in ``run_dir`` alone: a second process (e.g. a sweep restarted over live workers) gets a CheckpointError.
+
+    The lock is ``flock`` on ``<run_dir>/.qtl.lock``, released by the OS however the holder ends, so a killed run
+    leaves nothing stale. A directory that does not exist yet holds no run: nothing to lock (and none is made).
+    """
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        yield
+        return
+    handle = open(run_dir / LOCK_FILE, "a+", encoding="utf-8")  # held for the whole block
+    try:
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            handle.seek(0)
+            holder = handle.read().strip() or "another process"
+            raise CheckpointError(
+                f"{str(run_dir)!r} is in use by another qtl process ({holder}): let it finish or stop it, then run "
+                "again; nothing was written"
+            ) from None
+        handle.seek(0)
+        handle.truncate()
+        handle.write(f"pid {os.getpid()} on {socket.gethostname()}\n")
+        handle.flush()
+        yield
+    finally:
+        handle.close()  # closing the file releases the flock

@@ -23,7 +23,7 @@ from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from qtl.build import DTYPES
-from qtl.checkpoint import latest_checkpoint, load_checkpoint, refuse_existing_run
+from qtl.checkpoint import latest_checkpoint, load_checkpoint, refuse_existing_run, run_lock
 from qtl.config import TrainConfig, check_budget, check_group_keys, register_configs, show_progress, typed_groups
 from qtl.errors import CheckpointError, UserError
 from qtl.loop import RunResult, run
@@ -111,6 +111,13 @@ def record_config(cfg: DictConfig, output_dir: Path) -> None:
     (hydra_dir / "overrides.yaml").write_text(overrides, encoding="utf-8")
 
 
+def run_directory(cfg: DictConfig) -> Path:
+    """The directory the run will work in: the resumed run's (``resume=PATH``), else Hydra's output directory."""
+    if cfg.resume is not None and cfg.resume != "auto":
+        return Path(cfg.resume).expanduser().resolve()
+    return Path(HydraConfig.get().runtime.output_dir)
+
+
 def prepare(cfg: DictConfig) -> tuple[DictConfig, Path]:
     """The run's configuration and directory, every CLI-level check passed; ``.hydra/`` written for a fresh run."""
     hydra_cfg = HydraConfig.get()
@@ -191,9 +198,10 @@ _TRACEBACKS = {"shown": True}
 def train(cfg: DictConfig) -> None:
     """Learn the configured task; print where the logs are and a one-line summary."""
     try:
-        cfg, output_dir = prepare(cfg)
-        torch.set_default_dtype(DTYPES[cfg.dtype])
-        result = run(cfg, output_dir, resume=cfg.resume is not None)
+        with run_lock(run_directory(cfg)):  # one process per run directory, from the first read to the last write
+            cfg, output_dir = prepare(cfg)
+            torch.set_default_dtype(DTYPES[cfg.dtype])
+            result = run(cfg, output_dir, resume=cfg.resume is not None)
     except UserError as err:
         _log_to_files(one_line(err))
         if HydraConfig.get().mode == RunMode.MULTIRUN or _TRACEBACKS["shown"]:

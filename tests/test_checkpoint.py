@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import random
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -11,10 +13,12 @@ import torch
 from qtl.checkpoint import (
     CHECKPOINT_DIR,
     CHECKPOINT_FORMAT,
+    LOCK_FILE,
     checkpoint_path,
     latest_checkpoint,
     load_checkpoint,
     rng_state,
+    run_lock,
     save_checkpoint,
     set_rng_state,
 )
@@ -96,3 +100,33 @@ def test_a_corrupt_checkpoint_is_a_one_line_checkpoint_error(tmp_path, damage):
     message = str(caught.value)
     assert "\n" not in message and str(path) in message and len(message) < 300, message
     assert isinstance(caught.value, ValueError)  # a UserError: bad input, not a crash
+
+
+def test_run_lock_admits_one_process_at_a_time_and_is_released(tmp_path):
+    with run_lock(tmp_path):
+        assert "pid" in (tmp_path / LOCK_FILE).read_text()
+        with pytest.raises(CheckpointError, match=r"in use by another qtl process \(pid \d+ on "), run_lock(tmp_path):
+            pass
+    with run_lock(tmp_path):  # released on exit, also after the refusal
+        pass
+
+
+def test_run_lock_is_released_when_the_holder_dies(tmp_path):
+    holder = subprocess.Popen([sys.executable, "-c", "import sys, time; from qtl.checkpoint import run_lock\n"
+                               f"with run_lock({str(tmp_path)!r}):\n    print('held', flush=True); time.sleep(60)"],
+                              stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        with pytest.raises(CheckpointError, match=f"pid {holder.pid}"), run_lock(tmp_path):
+            pass
+    finally:
+        holder.kill()
+        holder.wait()
+    with run_lock(tmp_path):  # killed: the OS released its lock, nothing stale is left
+        pass
+
+
+def test_run_lock_makes_no_directory(tmp_path):
+    with run_lock(tmp_path / "missing"):
+        pass
+    assert not (tmp_path / "missing").exists()

@@ -12,6 +12,7 @@ from pathlib import Path
 import pytest
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
+from qtl.checkpoint import run_lock
 from tests.helpers import CLI_TINY as TINY
 
 pytestmark = pytest.mark.e2e
@@ -83,6 +84,23 @@ def test_resume_continues_in_the_run_and_leaves_nothing_in_the_cwd(finished, tmp
     assert sorted(p.name for p in tmp_path.iterdir()) == ["run"]  # no stray outputs/<date>/<time>/
     assert "resuming" in (run_dir / "train.log").read_text()  # the run's own log continues
     assert (run_dir / ".hydra" / "config.yaml").read_text() == config
+
+
+def test_a_run_in_use_by_another_process_is_refused_and_left_as_it_is(finished, tmp_path):
+    # E.g. a sweep restarted while the old sweep's workers still run: the second process must not write there too.
+    source, _ = finished
+    run_dir = tmp_path / "run"
+    shutil.copytree(source, run_dir)
+    with run_lock(run_dir):  # this test process holds the run, as a live worker would
+        refused = qtl(f"resume={run_dir}", "episodes=2", "threads=1", cwd=tmp_path)
+        auto = qtl(*TINY, "resume=auto", f"hydra.run.dir={run_dir}", cwd=tmp_path)
+    for done in (refused, auto):
+        assert done.returncode == 1
+        assert done.stderr.strip().count("\n") == 0 and "is in use by another qtl process (pid" in done.stderr
+    assert [r["episode"] for r in read_rows(run_dir)] == ["0", "1"]
+    assert len(list((run_dir / "checkpoints").glob("episode_*.pt"))) == 2
+    resumed = qtl(f"resume={run_dir}", "episodes=2", "threads=1", cwd=tmp_path)  # released: it continues
+    assert resumed.returncode == 0, resumed.stderr
 
 
 def test_user_errors_are_one_line_on_stderr_and_in_the_log(finished, tmp_path):
