@@ -66,3 +66,25 @@ def test_probe_reruns_the_last_search_with_other_settings(runs) -> None:
     assert report["episode"] == 2 and report["evaluations"] == 2
     assert report["overrides"][0] == "propagation=particles"
     assert len(report["real"]) == 1 and report["real"][0]["return"] >= 0
+
+
+def test_value_probe_values_a_policy_by_every_propagator(runs) -> None:
+    source_dir, _ = runs
+    checkpoints = sorted((source_dir / "checkpoints").glob("episode_*.pt"))
+    done = script("probe_policy_value.py", str(source_dir), "--data", str(checkpoints[1]), "--policy",
+                  str(checkpoints[2]), "--draws", "2", "--particles", "20", "--features", "16")
+    report = json.loads(done.stdout.strip().splitlines()[-1])
+    assert (report["data_episode"], report["policy_episode"]) == (1, 2)
+    # The cart-pole declares its kinematics: speed integration is valued too.
+    assert set(report) >= {"moment_matching", "marginal", "pathwise", "marginal_speed", "pathwise_speed"}
+    for name in ("marginal", "pathwise", "marginal_speed", "pathwise_speed"):
+        assert len(report[name]) == 2 and all(0.0 <= v <= 8.0 for v in report[name])  # 8 steps of reward <= 1
+        assert report[name][0] != report[name][1]  # two draws
+    assert 0.0 <= report["moment_matching"] <= 8.0
+    assert "configured" not in report  # the run's own propagator is moment matching
+    particles = script("probe_policy_value.py", str(source_dir), "--data", str(checkpoints[1]), "--draws", "2",
+                       "--particles", "20", "propagation=particles", "propagation.num_particles=20",
+                       "propagation.reward_width_scale=4.0")
+    report = json.loads(particles.stdout.strip().splitlines()[-1])
+    assert len(report["configured"]) == 2 and len(report["configured_search_reward"]) == 2
+    assert report["configured_search_reward"][0] > report["configured"][0]  # the 4× wider reward pays more

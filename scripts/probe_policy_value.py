@@ -1,0 +1,83 @@
+"""How each propagator values one policy on one model: prediction against search, for a run's checkpoints.
+
+A diagnostic for a propagator whose searches fail: if its rollouts value a known good policy (e.g. the one
+moment matching found from the same data) as highly as moment matching does, the model and the estimate are
+right and the search is what fails. The model is refitted on the data of ``--data`` (a checkpoint of
+``RUN_DIR``) with the run's model settings, as ``scripts/probe_policy_search.py`` does; ψ is the policy of
+``--policy`` (by default the same checkpoint). Printed as JSON: moment matching's predicted return, and for
+each particle propagator (marginal or pathwise sampling, x + Δ or speed integration where the task declares
+its kinematics) the predicted return under the task's reward over ``--draws`` draws of ``--particles``; where
+the run's config (with the overrides, e.g. a recipe's settings) is a particle propagator, that one too, under the
+task's reward (``configured``) and under its search reward (``configured_search_reward``).
+
+    .venv/bin/python scripts/probe_policy_value.py RUN_DIR --data PATH [--policy PATH] [--draws 5]
+        [--particles 400] [--features 256] [--threads 1] [--seed 0] [OVERRIDE ...]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import torch
+from omegaconf import OmegaConf
+from probe_policy_search import with_overrides
+
+from qtl.build import build
+from qtl.checkpoint import load_checkpoint
+from qtl.config import typed_groups
+from qtl.data import TransitionDataset
+from qtl.propagation import MomentMatching, Particles
+from qtl.seeding import torch_generator
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("run_dir", type=Path)
+    parser.add_argument("--data", type=Path, required=True, help="checkpoint whose data the model is fitted on")
+    parser.add_argument("--policy", type=Path, help="checkpoint whose ψ is valued (default: --data's)")
+    parser.add_argument("--draws", type=int, default=5, help="particle draws (fresh random numbers each)")
+    parser.add_argument("--particles", type=int, default=400)
+    parser.add_argument("--features", type=int, default=256, help="random Fourier features of pathwise sampling")
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--seed", type=int, default=0, help="of the model fit")
+    args, overrides = parser.parse_known_args()
+    if args.draws < 1 or args.particles < 2:
+        raise SystemExit("--draws must be >= 1 and --particles >= 2")
+    torch.set_num_threads(args.threads)
+
+    data_checkpoint = load_checkpoint(args.data)
+    policy_checkpoint = load_checkpoint(args.policy) if args.policy else data_checkpoint
+    parts = build(with_overrides(typed_groups(OmegaConf.create(data_checkpoint["config"])), overrides))
+    task, start = parts.task, parts.start
+    data = TransitionDataset.from_state(data_checkpoint["dataset"], task.angle_dims)
+    model = parts.fit_dynamics(data, torch_generator(args.seed, 0, 0))
+    policy = parts.initial_policy()
+    policy.load_state_dict(policy_checkpoint["policy"])
+
+    variants: dict[str, dict] = {"marginal": {}, "pathwise": {"sampling": "pathwise"}}
+    if task.kinematics is not None:
+        variants |= {f"{name}_speed": {**kw, "integration": "speed", "kinematics": task.kinematics}
+                     for name, kw in list(variants.items())}
+    report = {"run": str(args.run_dir), "data_episode": data_checkpoint["episode"], "n": len(data),
+              "policy_episode": policy_checkpoint["episode"], "overrides": overrides}
+    with torch.no_grad():
+        moments = MomentMatching(model, policy, parts.reward, angle_dims=task.angle_dims)
+        report["moment_matching"] = float(moments.rollout(start, task.horizon).value)
+        for name, settings in variants.items():
+            particles = Particles(model, policy, parts.reward, angle_dims=task.angle_dims,
+                                  num_particles=args.particles, num_features=args.features, expected_reward=False,
+                                  seed=args.seed, **settings)
+            report[name] = [float(particles.rollout(start, task.horizon, draw=d).value)
+                            for d in range(args.draws)]
+        configured = parts.make_propagator(model, policy, parts.reward, angle_dims=task.angle_dims)
+        if isinstance(configured, Particles):  # the run's own particles (with the overrides), and its search reward
+            for name, reward in (("configured", None), ("configured_search_reward", configured.search_reward)):
+                report[name] = [float(configured.rollout(start, task.horizon, draw=d, reward=reward).value)
+                                for d in range(args.draws)]
+    print(json.dumps(report))
+
+
+if __name__ == "__main__":
+    main()
