@@ -13,10 +13,18 @@ Bit-for-bit agreement needs torch's arithmetic in torch's order and with torch's
 losses are Python floats, directional derivatives 0-dim tensors, step lengths either, and a Python
 float divided by a tensor is ``reciprocal(tensor) * float`` in torch, which rounds differently from a
 float division. The code below keeps those types; do not "simplify" them into floats.
+
+Invalid points (beyond torch): the caller may answer a point with a non-finite loss, or a gradient that is
+None or not finite (the rollout broke down there, e.g. a covariance that lost definiteness at an extreme ψ).
+The line search then retreats halfway back towards its last valid step along the line, again and again
+within its budget, as Rasmussen's ``minimize.m`` (PILCO's optimiser) does; if no valid step is found it
+stays where it was, and the run ends there. Where every answer is valid nothing of this runs, so the
+agreement with torch holds.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Generator
 from dataclasses import dataclass
 
@@ -36,8 +44,8 @@ MIN_BRACKET_FRACTION = 0.1
 EXTRAPOLATE_MIN = 0.01
 EXTRAPOLATE_MAX = 10
 
-# What the caller sends back for a point: the loss and its gradient `n` there.
-Evaluation = tuple[float, Tensor]
+# What the caller sends back for a point: the loss and its gradient `n` there (None: no valid gradient there).
+Evaluation = tuple[float, Tensor | None]
 # A step length: torch mixes Python numbers and 0-dim tensors, and so does this module (see above).
 Step = float | Tensor
 # The generator protocol: yields points `n`, is sent evaluations, returns a value.
@@ -127,6 +135,26 @@ def _cubic_minimiser(t1: Step, f1: float, g1: Tensor, t2: Step, f2: float, g2: T
     return min(max(minimiser, low), high)
 
 
+def invalid(answer: Evaluation) -> bool:
+    """Whether an evaluation cannot be used: a non-finite loss, or a missing or non-finite gradient."""
+    loss, grad = answer
+    return not math.isfinite(loss) or grad is None or not bool(torch.isfinite(grad).all())
+
+
+def _retreat(x: Tensor, direction: Tensor, valid: Step, step: Step, answer: Evaluation, budget: int
+             ) -> Generator[Tensor, Evaluation, tuple[Step, Evaluation, int]]:
+    """While the answer at ``step`` is invalid, try halfway back to the valid step ``valid``, at most ``budget`` times.
+
+    Returns the last step tried, its answer (still invalid when the budget ran out) and the evaluations spent.
+    """
+    used = 0
+    while invalid(answer) and used < budget:
+        step = valid + (step - valid) / 2
+        answer = yield x.add(direction, alpha=step)
+        used += 1
+    return step, answer, used
+
+
 def _strong_wolfe(x: Tensor, step: Step, direction: Tensor, loss: float, grad: Tensor, slope: Tensor,
                   max_trials: int) -> Generator[Tensor, Evaluation, _LineSearchResult]:
     """A step along ``direction`` from ``x`` that meets the strong Wolfe conditions (Nocedal & Wright, Alg. 3.5-3.6).
@@ -137,14 +165,19 @@ def _strong_wolfe(x: Tensor, step: Step, direction: Tensor, loss: float, grad: T
     """
     width_scale = direction.abs().max()
     grad = grad.clone(memory_format=torch.contiguous_format)
-    trial_loss, trial_grad = yield x.add(direction, alpha=step)
+    answer = yield x.add(direction, alpha=step)
     spent = 1
+    step, answer, used = yield from _retreat(x, direction, 0, step, answer, max_trials)
+    spent += used
+    if invalid(answer):  # no valid step along d within the budget: stay at x
+        return _LineSearchResult(loss, grad, 0, spent)
+    trial_loss, trial_grad = answer
     trial_slope = trial_grad.dot(direction)
 
     # -- Bracketing: find an interval that holds an acceptable step, or such a step itself. ----------
     prev_step: Step = 0
     prev_loss, prev_grad, prev_slope = loss, grad, slope
-    trials = 0
+    trials = used
     found = False
     bracket: list[Step] = []
     bracket_loss: list[float] = []
@@ -171,10 +204,15 @@ def _strong_wolfe(x: Tensor, step: Step, direction: Tensor, loss: float, grad: T
         prev_step, prev_loss = step, trial_loss
         prev_grad, prev_slope = trial_grad.clone(memory_format=torch.contiguous_format), trial_slope
         step = next_step
-        trial_loss, trial_grad = yield x.add(direction, alpha=step)
+        answer = yield x.add(direction, alpha=step)
         spent += 1
-        trial_slope = trial_grad.dot(direction)
         trials += 1
+        step, answer, used = yield from _retreat(x, direction, prev_step, step, answer, max_trials - trials)
+        spent, trials = spent + used, trials + used
+        if invalid(answer):  # nothing valid beyond the last trial, which decreased the loss enough: take it
+            return _LineSearchResult(prev_loss, prev_grad, prev_step, spent)
+        trial_loss, trial_grad = answer
+        trial_slope = trial_grad.dot(direction)
     if trials == max_trials:  # out of trials: the better of the start and the last trial
         bracket, bracket_loss, bracket_grad = [0, step], [loss, trial_loss], [grad, trial_grad]
 
@@ -199,10 +237,15 @@ def _strong_wolfe(x: Tensor, step: Step, direction: Tensor, loss: float, grad: T
         else:
             stalled = False
 
-        trial_loss, trial_grad = yield x.add(direction, alpha=step)
+        answer = yield x.add(direction, alpha=step)
         spent += 1
-        trial_slope = trial_grad.dot(direction)
         trials += 1
+        step, answer, used = yield from _retreat(x, direction, bracket[low], step, answer, max_trials - trials)
+        spent, trials = spent + used, trials + used
+        if invalid(answer):  # nothing valid between the bracket's low end and this trial: the low end it is
+            break
+        trial_loss, trial_grad = answer
+        trial_slope = trial_grad.dot(direction)
 
         if trial_loss > loss + WOLFE_C1 * step * slope or trial_loss >= bracket_loss[low]:
             # Not sufficiently lower, or not below the low end: the trial becomes the high end.
@@ -231,7 +274,10 @@ def lbfgs(x: Tensor, options: LBFGSOptions) -> Asking:
     leaves the parameters), and it need not be the best point evaluated.
     """
     x = x.detach().clone(memory_format=torch.contiguous_format)
-    loss, grad = yield x
+    answer = yield x
+    if invalid(answer):  # no valid start: nothing to do
+        return x
+    loss, grad = answer
     spent = 1
     if grad.abs().max() <= options.tolerance_grad:
         return x

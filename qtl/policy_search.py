@@ -30,7 +30,7 @@ from torch import Tensor, nn
 
 from qtl import health
 from qtl.errors import NonFiniteObjective
-from qtl.lbfgs import Evaluation, LBFGSOptions, lbfgs
+from qtl.lbfgs import Evaluation, LBFGSOptions, invalid, lbfgs
 from qtl.plateau import PlateauMonitor, PlateauRule
 from qtl.policies import Policy, psi_names, set_psi, stack_psi
 
@@ -450,21 +450,23 @@ class LBFGSSearch(_RestartingSearch):
 
     def _run(self, policy: nn.Module, params: list[nn.Parameter], objective: Callable[[], Tensor],
              tick: Callable[[], None], generator: torch.Generator | None) -> None:
-        optimiser = torch.optim.LBFGS(
-            params, lr=1.0, max_iter=self.max_iter, max_eval=self.max_iter, line_search_fn="strong_wolfe"
-        )
-
-        def closure() -> Tensor:
-            optimiser.zero_grad()
-            loss = -_checked(objective())
-            loss.backward()
-            for p in params:
-                if p.grad is not None and not torch.isfinite(p.grad).all():
-                    raise NonFiniteObjective("gradient of the predicted return is not finite")
-            tick()
-            return loss
-
-        optimiser.step(closure)
+        options = LBFGSOptions(max_iter=self.max_iter, max_eval=self.max_iter)  # torch.optim.LBFGS's settings
+        run = lbfgs(torch.cat([p.detach().reshape(-1) for p in params]), options)
+        point, answer = next(run), None
+        while True:
+            _assign(params, point)
+            answer = _evaluate_flat(params, objective)
+            if not invalid(answer):
+                tick()
+            try:
+                point = run.send(answer)
+            except StopIteration as stop:
+                _assign(params, stop.value)  # the last accepted point, where torch's LBFGS leaves ψ
+                break
+        if invalid(answer):  # it ended on an invalid point: no valid step was left to take
+            health.count(health.SEARCH_STOPPED)
+            log.warning("policy search run stopped: no valid ψ along its last search direction; it keeps the best "
+                        "ψ it evaluated")
 
     def _run_batched(self, batch: _RestartBatch, objective: Callable[[], Tensor], tick: Callable[[], None]) -> None:
         options = LBFGSOptions(max_iter=self.max_iter, max_eval=self.max_iter)  # as _run's torch.optim.LBFGS
@@ -475,17 +477,41 @@ class LBFGSSearch(_RestartingSearch):
             answers = batch.evaluate_each(objective)
             tick()
             for restart, answer in zip(list(asked), answers, strict=True):
-                if answer is None:
-                    health.count(health.SEARCH_STOPPED)
-                    log.warning("policy search restart %d stopped at a numerically invalid ψ; it keeps the best ψ "
-                                "it evaluated", restart)
-                    runs[restart].close()
-                    del asked[restart]
-                    continue
+                answer = (math.inf, None) if answer is None else answer  # invalid: the line search retreats
                 try:
                     asked[restart] = runs[restart].send(answer)
-                except StopIteration:  # converged or out of budget: it leaves the batch
+                except StopIteration:  # converged, out of budget, or no valid step left: it leaves the batch
                     del asked[restart]
+                    if invalid(answer):
+                        health.count(health.SEARCH_STOPPED)
+                        log.warning("policy search restart %d stopped: no valid ψ along its last search "
+                                    "direction; it keeps the best ψ it evaluated", restart)
+
+
+def _assign(params: list[nn.Parameter], point: Tensor) -> None:
+    """Set ``params`` to the flat ``point`` `n` (in order, as ``torch.optim.LBFGS`` flattens them)."""
+    offset = 0
+    with torch.no_grad():
+        for p in params:
+            p.copy_(point[offset : offset + p.numel()].view_as(p))
+            offset += p.numel()
+
+
+def _evaluate_flat(params: list[nn.Parameter], objective: Callable[[], Tensor]) -> Evaluation:
+    """(−V, −∂V/∂ψ flattened `n`) at the current ψ; (inf, None) where ψ is numerically invalid (counted)."""
+    for p in params:
+        p.grad = None
+    try:
+        loss = -_checked(objective())
+        loss.backward()
+    except INVALID_PSI_ERRORS as err:
+        _count_failure(err)
+        return math.inf, None
+    grad = torch.cat([p.grad.reshape(-1) if p.grad is not None else torch.zeros_like(p).reshape(-1) for p in params])
+    if not bool(torch.isfinite(grad).all()):
+        health.count(health.NONFINITE)
+        return math.inf, None
+    return float(loss.detach()), grad
 
 
 class AdamSearch(_RestartingSearch):

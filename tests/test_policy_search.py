@@ -292,22 +292,43 @@ def invalid(x: torch.Tensor) -> torch.Tensor:
     return (x[..., 0] > 0.6) & (x[..., 1] < 0.3)
 
 
-def test_batched_lbfgs_stops_a_failing_restart_where_the_sequential_search_does():
-    """A restart that reaches the invalid region stops at its best ψ after the same evaluations, alone or batched."""
+def test_lbfgs_retreats_from_an_invalid_region_and_goes_on_alone_or_batched():
+    """A restart whose line search steps into the invalid region retreats halfway back (again and again) and goes
+    on to the maximum instead of stopping there; alone or batched, the same points."""
     results = {}
     for batched in (False, True):
         policy = ValleyPolicy([-1.0, 0.5])
         search = LBFGSSearch(max_iter=30, restarts=4, perturbation=0.5, batched=batched)
+        health.take()
         points, result = points_per_restart(search, policy, policy.value, seed=2)
-        results[batched] = (points, result)
-    (seq_points, seq), (bat_points, bat) = results[False], results[True]
+        results[batched] = (points, result, health.take())
+    (seq_points, seq, seq_counts), (bat_points, bat, bat_counts) = results[False], results[True]
     assert bat.run_evaluations == seq.run_evaluations and bat.run_values == seq.run_values
-    assert bat.value == seq.value and all(math.isfinite(v) for v in seq.run_values)
+    assert bat.value == seq.value and seq_counts == bat_counts
     for want, got in zip(seq_points, bat_points, strict=True):
         assert len(got) == len(want) and all(torch.equal(g, w) for g, w in zip(got, want, strict=True))
-    stopped = [r for r, restart in enumerate(seq_points) if invalid(restart[-1])]
-    assert 0 < len(stopped) < 4  # some restarts stepped into the invalid region, the others converged
-    assert all(seq.run_values[r] == pytest.approx(1.0, abs=1e-6) for r in range(4) if r not in stopped)
+    retreated = [r for r, restart in enumerate(seq_points) if any(bool(invalid(p)) for p in restart)]
+    assert retreated  # some restarts stepped into the invalid region ...
+    assert seq_counts[health.NONFINITE] >= len(retreated) and seq_counts[health.SEARCH_STOPPED] == 0
+    assert all(not bool(invalid(restart[-1])) for restart in seq_points)  # ... and left it
+    assert seq.run_values == pytest.approx([1.0] * 4, abs=1e-4)  # every restart reached the maximum
+
+
+def test_lbfgs_stops_where_no_valid_step_is_left():
+    """From a point whose every step along the search direction is invalid, the run stops there, counted once."""
+    policy = ValleyPolicy([0.55, 0.2])  # the valley's ascent leads straight into x₀ > 0.6 with x₁ < 0.3
+
+    def objective() -> torch.Tensor:
+        value = policy.value()
+        moved = (policy.x - torch.tensor([0.55, 0.2], dtype=policy.x.dtype)).abs().max() > 0
+        return torch.where(moved, math.nan, value)  # only the start is valid
+
+    health.take()
+    result = LBFGSSearch(max_iter=10, restarts=1)(policy, objective)
+    counts = health.take()
+    assert counts[health.SEARCH_STOPPED] == 1 and counts[health.NONFINITE] >= 2
+    assert result.value == pytest.approx(float(ValleyPolicy([0.55, 0.2]).value()))
+    torch.testing.assert_close(policy.x.detach(), torch.tensor([0.55, 0.2], dtype=policy.x.dtype))
 
 
 def test_batched_adam_follows_each_restarts_own_path():
