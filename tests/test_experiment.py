@@ -91,3 +91,12 @@ def test_the_aircraft_driver_records_the_autopilot_line_before_the_report(tmp_pa
     tables = json.loads((root / "report" / "tables.json").read_text())
     assert tables["reference"] == {"name": "autopilot", "return": record.reference.total}
     assert "reference" in yaml.safe_load((root / "experiment.yaml").read_text())
+
+
+@pytest.mark.parametrize("preset", sorted(p.stem for p in (ROOT / "configs" / "experiment").glob("*.yaml")
+                                          if not p.stem.endswith("_source")))
+def test_sweeps_launch_every_approach_of_a_target_and_seed_together(preset):
+    # Hydra launches the product of the sweeper's params with the last key innermost: with the approaches last, a
+    # sweep stopped part-way (sweeps span sessions) leaves whole comparisons, not one approach's runs only.
+    params = yaml.safe_load((ROOT / "configs" / "experiment" / f"{preset}.yaml").read_text())["hydra"]["sweeper"]
+    assert list(params["params"])[-1] == "approach"
