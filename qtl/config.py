@@ -212,6 +212,10 @@ class ParticlesConfig(PropagationConfig):
         default="delta", metadata=doc("delta | speed: x + Δ in every dimension, or the GP's Δ of the velocities "
                                       "with positions integrated, q + T q̇ + (T/2) Δq̇ (MC-PILCO; task.kinematics)"),
     )
+    search_start_scale: float = field(
+        default=1.0, metadata=doc("the search's start spread: N(μ_0, s² Σ_0), s in (0, 1] (lower gradient variance "
+                                  "on chaotic rollouts; predictions keep the task's start)"),
+    )
     seed: int = field(default=II("seed"), metadata=doc("seed of the base noise"))
 
 

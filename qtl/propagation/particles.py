@@ -176,9 +176,12 @@ class Particles:
     (the task's when it declares one, else widened); ``integration``: ``delta`` (x + Δ in every dimension) or
     ``speed`` (positions follow their velocities; see the module docstring), with ``kinematics`` (positions,
     velocities and period, e.g. a :class:`~qtl.task.Kinematics`) needed for ``speed``;
-    :meth:`rollout` (predictions, figures) scores the task's reward. ``path_dtype``: ``float64``
-    (default) evaluates pathwise functions in the propagation's dtype, ``float32`` in float32 and
-    returns them in the propagation's (see the module docstring). ``seed``: of the base noise.
+    :meth:`rollout` (predictions, figures) scores the task's reward. ``search_start_scale`` s: the search
+    (:meth:`expected_return`) starts the particles from N(μ_0, s² Σ_0) instead of N(μ_0, Σ_0) (predictions keep
+    the task's): a long rollout of a chaotic system amplifies the start's spread, and with it the variance of the
+    reparameterised gradient (MC-PILCO's cart-pole starts with std 0.01; PILCO's task with 0.1).
+    ``path_dtype``: ``float64`` (default) evaluates pathwise functions in the propagation's dtype, ``float32``
+    in float32 and returns them in the propagation's (see the module docstring). ``seed``: of the base noise.
     ``dtype``: of the propagation (default: the cache's); the policy must share it.
     """
 
@@ -194,6 +197,7 @@ class Particles:
         search_cost: str = "widened",
         path_dtype: str = "float64",
         integration: str = "delta",
+        search_start_scale: float = 1.0,
         **_: object,
     ) -> None:
         """The settings' ranges, checked before any work (``qtl.build`` calls it): a UserError naming what to fix."""
@@ -222,6 +226,9 @@ class Particles:
             raise UserError(f"propagation.path_dtype must be one of {', '.join(PATH_DTYPES)}, got {path_dtype!r}")
         if integration not in INTEGRATION:
             raise UserError(f"propagation.integration must be one of {', '.join(INTEGRATION)}, got {integration!r}")
+        if not 0.0 < search_start_scale <= 1.0:
+            raise UserError(f"propagation.search_start_scale must be in (0, 1] (1: the task's start spread), "
+                            f"got {search_start_scale}")
 
     def __init__(
         self,
@@ -244,13 +251,14 @@ class Particles:
         path_dtype: str = "float64",
         integration: str = "delta",
         kinematics: Kinematics | None = None,
+        search_start_scale: float = 1.0,
         seed: int = 0,
         dtype: torch.dtype | None = None,
     ) -> None:
         self.check_settings(num_particles=num_particles, resample_every=resample_every, seed=seed,
                             sampling=sampling, num_features=num_features, reward_width_scale=reward_width_scale,
                             reward_task_weight=reward_task_weight, search_cost=search_cost, path_dtype=path_dtype,
-                            integration=integration)
+                            integration=integration, search_start_scale=search_start_scale)
         if integration == "speed" and kinematics is None:
             raise UserError("propagation.integration=speed needs the task's kinematics: add task.kinematics "
                             "(positions, velocities) or set propagation.integration=delta")
@@ -264,6 +272,7 @@ class Particles:
         cost = None if search_cost == "widened" else task_search_cost
         self.search_reward = search_reward(reward, reward_width_scale, reward_task_weight, cost)
         self.num_particles = int(num_particles)
+        self.search_start_scale = float(search_start_scale)
         self.resample_every = int(resample_every)
         self.include_noise = include_noise
         self.expected_reward = bool(expected_reward)
@@ -458,6 +467,8 @@ class Particles:
         """V^π(x_0) ≈ (1/P) Σ_p Σ_{t=1..H} r(x_t^p) (Eq. 4), r the search reward: `...`, differentiable in ψ."""
         draw = self.draw_index(evaluation=self.calls)
         self.calls += 1
+        if self.search_start_scale != 1.0:  # the search's start: the task's spread narrowed, its mean kept
+            start = Gaussian(start.mean, start.cov * self.search_start_scale**2)
         return self.rollout(start, horizon, draw, self.search_reward).value
 
 

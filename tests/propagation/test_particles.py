@@ -476,3 +476,18 @@ def test_a_bad_reward_width_scale_is_a_user_error(gp_factory, scale):
     gp, policy, reward = linear_parts(gp_factory)
     with pytest.raises(UserError, match="reward_width_scale"):
         Particles(gp, policy, reward, reward_width_scale=scale)
+
+
+def test_search_start_scale_narrows_the_searchs_start_only(gp_factory):
+    # The search's objective starts from N(μ_0, s² Σ_0); predictions (rollout) keep the task's start.
+    gp, policy, reward = pendulum_parts(gp_factory)
+    start = Gaussian(torch.tensor([0.1, 0.3, -0.2], dtype=DTYPE), 0.2 * torch.eye(3, dtype=DTYPE))
+    narrow = Particles(gp, policy, reward, angle_dims=(1,), num_particles=30, search_start_scale=0.3, seed=4)
+    plain = Particles(gp, policy, reward, angle_dims=(1,), num_particles=30, seed=4)
+    expected = plain.rollout(Gaussian(start.mean, 0.09 * start.cov), 4).value
+    torch.testing.assert_close(narrow.expected_return(start, 4), expected, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(narrow.rollout(start, 4).value, plain.rollout(start, 4).value, rtol=0, atol=0)
+    assert not torch.equal(narrow.rollout(start, 4).value, expected)
+    for bad in (0.0, 1.5):
+        with pytest.raises(UserError, match=r"propagation\.search_start_scale must be in \(0, 1\]"):
+            Particles(gp, policy, reward, angle_dims=(1,), search_start_scale=bad)
