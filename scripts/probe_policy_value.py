@@ -8,10 +8,13 @@ right and the search is what fails. The model is refitted on the data of ``--dat
 each particle propagator (marginal or pathwise sampling, x + Δ or speed integration where the task declares
 its kinematics) the predicted return under the task's reward over ``--draws`` draws of ``--particles``; where
 the run's config (with the overrides, e.g. a recipe's settings) is a particle propagator, that one too, under the
-task's reward (``configured``) and under its search reward (``configured_search_reward``).
+task's reward (``configured``) and under its search reward (``configured_search_reward``). With ``--gradients K``
+also the reparameterised gradient ∂V/∂ψ of each particle propagator over K draws: the median over ψ's entries of
+|mean| / std of one draw (its signal-to-noise ratio), and the mean cosine between one draw's gradient and moment
+matching's. ``--start-scale s`` values everything from N(μ_0, s² Σ_0) (the search's ``search_start_scale``).
 
     .venv/bin/python scripts/probe_policy_value.py RUN_DIR --data PATH [--policy PATH] [--draws 5]
-        [--particles 400] [--features 256] [--threads 1] [--seed 0] [OVERRIDE ...]
+        [--particles 400] [--features 256] [--gradients K] [--start-scale s] [--threads 1] [--seed 0] [OVERRIDE ...]
 """
 
 from __future__ import annotations
@@ -23,11 +26,13 @@ from pathlib import Path
 import torch
 from omegaconf import OmegaConf
 from probe_policy_search import with_overrides
+from torch import Tensor
 
 from qtl.build import build
 from qtl.checkpoint import load_checkpoint
 from qtl.config import typed_groups
 from qtl.data import TransitionDataset
+from qtl.gaussian import Gaussian
 from qtl.propagation import MomentMatching, Particles
 from qtl.seeding import torch_generator
 
@@ -40,17 +45,22 @@ def main() -> None:
     parser.add_argument("--draws", type=int, default=5, help="particle draws (fresh random numbers each)")
     parser.add_argument("--particles", type=int, default=400)
     parser.add_argument("--features", type=int, default=256, help="random Fourier features of pathwise sampling")
+    parser.add_argument("--gradients", type=int, default=0, help="draws of ∂V/∂ψ per propagator (0: none)")
+    parser.add_argument("--start-scale", type=float, default=1.0, help="value from N(μ_0, s² Σ_0)")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--seed", type=int, default=0, help="of the model fit")
     args, overrides = parser.parse_known_args()
-    if args.draws < 1 or args.particles < 2:
-        raise SystemExit("--draws must be >= 1 and --particles >= 2")
+    if args.draws < 1 or args.particles < 2 or args.gradients == 1 or args.gradients < 0:
+        raise SystemExit("--draws must be >= 1, --particles >= 2 and --gradients 0 or >= 2")
+    if not 0 < args.start_scale <= 1:
+        raise SystemExit("--start-scale must be in (0, 1]")
     torch.set_num_threads(args.threads)
 
     data_checkpoint = load_checkpoint(args.data)
     policy_checkpoint = load_checkpoint(args.policy) if args.policy else data_checkpoint
     parts = build(with_overrides(typed_groups(OmegaConf.create(data_checkpoint["config"])), overrides))
     task, start = parts.task, parts.start
+    start = Gaussian(start.mean, start.cov * args.start_scale**2)
     data = TransitionDataset.from_state(data_checkpoint["dataset"], task.angle_dims)
     model = parts.fit_dynamics(data, torch_generator(args.seed, 0, 0))
     policy = parts.initial_policy()
@@ -61,9 +71,29 @@ def main() -> None:
         variants |= {f"{name}_speed": {**kw, "integration": "speed", "kinematics": task.kinematics}
                      for name, kw in list(variants.items())}
     report = {"run": str(args.run_dir), "data_episode": data_checkpoint["episode"], "n": len(data),
-              "policy_episode": policy_checkpoint["episode"], "overrides": overrides}
+              "policy_episode": policy_checkpoint["episode"], "start_scale": args.start_scale, "overrides": overrides}
+    params = [p for p in policy.parameters() if p.requires_grad]
+
+    def gradient(propagator: MomentMatching | Particles, draw: int | None = None) -> Tensor:
+        """∂V/∂ψ flattened, V under the task's reward."""
+        value = propagator.rollout(start, task.horizon) if draw is None else propagator.rollout(start, task.horizon,
+                                                                                                  draw=draw)
+        return torch.cat([g.reshape(-1) for g in torch.autograd.grad(value.value, params)])
+
+    moments = MomentMatching(model, policy, parts.reward, angle_dims=task.angle_dims)
+    if args.gradients:
+        reference = gradient(moments)
+        for name, settings in variants.items():
+            particles = Particles(model, policy, parts.reward, angle_dims=task.angle_dims,
+                                  num_particles=args.particles, num_features=args.features, expected_reward=False,
+                                  seed=args.seed, **settings)
+            draws = torch.stack([gradient(particles, d) for d in range(args.gradients)])
+            report[f"{name}_gradient"] = {
+                "snr_median": float((draws.mean(0).abs() / draws.std(0)).median()),
+                "cosine_to_moment_matching": float(torch.nn.functional.cosine_similarity(
+                    draws, reference[None], dim=1).mean()),
+            }
     with torch.no_grad():
-        moments = MomentMatching(model, policy, parts.reward, angle_dims=task.angle_dims)
         report["moment_matching"] = float(moments.rollout(start, task.horizon).value)
         for name, settings in variants.items():
             particles = Particles(model, policy, parts.reward, angle_dims=task.angle_dims,
