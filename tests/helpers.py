@@ -13,6 +13,7 @@ from torch import Tensor
 from envs.rewards import SaturatingReward
 from qtl.config import register_configs
 from qtl.gaussian import Gaussian
+from qtl.policies import RBFPolicy, SquashedPolicy
 from qtl.rewards import ExpectedSaturatingReward
 
 
@@ -109,3 +110,16 @@ def train_config(*overrides: str) -> DictConfig:
 def tiny_config(*overrides: str) -> DictConfig:
     """The composed ``train`` config with the TINY budget and ``overrides``."""
     return train_config(*TINY, *overrides)
+
+
+def squashed_rbf_parts(gp_factory: Callable, state_dim: int, angle_dims: tuple[int, ...], num_basis: int,
+                       seeds: tuple[int, int]) -> tuple:
+    """A toy GP (``gp_factory``, 40 points, 1 action), a squashed RBF policy on its features, a quadratic reward.
+
+    ``seeds``: of the GP's data and of the policy's support points and targets.
+    """
+    gp = gp_factory(40, state_dim, 1, angle_dims, seed=seeds[0])
+    gen = torch.Generator().manual_seed(seeds[1])
+    targets = torch.randn(num_basis, 1, generator=gen, dtype=torch.float64)
+    policy = SquashedPolicy(RBFPolicy(state_dim + len(angle_dims), 1, num_basis, targets=targets, generator=gen), 2.0)
+    return gp, policy, quadratic_reward(state_dim, angle_dims)

@@ -11,12 +11,12 @@ from qtl.errors import TaskError, UserError
 from qtl.features import AngleFeatures
 from qtl.gaussian import Gaussian
 from qtl.models import GPPosteriorCache
-from qtl.policies import RBFPolicy, SquashedPolicy
 from qtl.propagation import Particles
 from qtl.propagation.integration import SpeedIntegration
 from qtl.propagation.pathwise import MatheronPaths
 from qtl.task import Kinematics
-from tests.helpers import gradcheck_value_wrt_policy_and_start, quadratic_reward, tiny_config
+from tests.helpers import gradcheck_value_wrt_policy_and_start, squashed_rbf_parts, tiny_config
+from tests.propagation.reference import assert_marginal_paths
 
 DTYPE = torch.float64
 # Agreement with an independent per-particle reference using the same random numbers.
@@ -30,12 +30,7 @@ LONG_PERIOD = CARTPOLE._replace(period=1.5)
 
 def cartpole_parts(gp_factory, num_basis: int = 6):
     """A 4-D state with an angle at 2, a squashed RBF policy, a quadratic reward."""
-    gp = gp_factory(40, 4, 1, (2,), seed=31)
-    gen = torch.Generator().manual_seed(32)
-    policy = SquashedPolicy(
-        RBFPolicy(5, 1, num_basis, targets=torch.randn(num_basis, 1, generator=gen, dtype=DTYPE), generator=gen), 2.0
-    )
-    return gp, policy, quadratic_reward(4, (2,))
+    return squashed_rbf_parts(gp_factory, 4, (2,), num_basis, seeds=(31, 32))
 
 
 def speed(gp, policy, reward, **kwargs) -> Particles:
@@ -106,24 +101,13 @@ def test_marginal_particles_integrate_positions_from_their_velocity_draws(gp_fac
     # propagator's own noise columns, and the positions by the trapezoid rule.
     gp, policy, reward = cartpole_parts(gp_factory)
     particles = speed(gp, policy, reward, include_noise=include_noise)
-    horizon = 4
-    cache = gp.posterior_cache()
-    with torch.no_grad():
-        states, actions = particles.trajectories(start(), horizon)
-        start_noise, step_noise, _ = particles.base_noise(horizon)
-        features = AngleFeatures(4, (2,))
-        x = start().mean + start_noise @ torch.linalg.cholesky(start().cov).mT
-        expected = [x]
-        for t in range(horizon):
-            u = policy(features(x))
-            torch.testing.assert_close(actions[:, t], u, rtol=EXACT_RTOL, atol=EXACT_ATOL)
-            mean, var = posterior(cache, torch.cat([features(x), u], dim=-1))
-            var = var.clamp_min(0.0) + (cache.hyperparameters.noise_variance if include_noise else 0.0)
-            delta = torch.zeros_like(x)
-            delta[:, MODELLED] = (mean + var.sqrt() * step_noise[t])[:, MODELLED]
-            x = trapezoid(x, delta)
-            expected.append(x)
-    torch.testing.assert_close(states, torch.stack(expected, dim=1), rtol=EXACT_RTOL, atol=EXACT_ATOL)
+
+    def step(x: Tensor, delta: Tensor) -> Tensor:  # the velocities' draws, the positions by the trapezoid rule
+        modelled = torch.zeros_like(x)
+        modelled[:, MODELLED] = delta[:, MODELLED]
+        return trapezoid(x, modelled)
+
+    assert_marginal_paths(particles, gp, policy, start(), 4, posterior, include_noise, step)
 
 
 def reference_functions(cache: GPPosteriorCache, paths: MatheronPaths, z: Tensor, outputs: list[int]) -> Tensor:

@@ -12,13 +12,13 @@ from hydra.utils import instantiate
 
 from qtl.config import register_configs
 from qtl.errors import NonFiniteObjective, UserError
-from qtl.features import AngleFeatures
 from qtl.gaussian import Gaussian
 from qtl.policies import LinearPolicy, RBFPolicy, SquashedPolicy
 from qtl.propagation import MomentMatching, Particles
 from qtl.propagation.particles import _gaussian_resample, _safe_sqrt
 from qtl.rewards import AngleDistanceReward
-from tests.helpers import gradcheck_value_wrt_policy_and_start, quadratic_reward
+from tests.helpers import gradcheck_value_wrt_policy_and_start, quadratic_reward, squashed_rbf_parts
+from tests.propagation.reference import assert_marginal_paths
 from tests.propagation.restarts import assert_restarts_equal_separate
 
 DTYPE = torch.float64
@@ -43,12 +43,7 @@ def linear_parts(gp_factory):
 
 def pendulum_parts(gp_factory, num_basis: int = 8):
     """A 3-D state with an angle, a squashed RBF policy: PILCO's full configuration."""
-    gp = gp_factory(40, 3, 1, (1,), seed=22)
-    gen = torch.Generator().manual_seed(23)
-    policy = SquashedPolicy(
-        RBFPolicy(4, 1, num_basis, targets=torch.randn(num_basis, 1, generator=gen, dtype=DTYPE), generator=gen), 2.0
-    )
-    return gp, policy, quadratic_reward(3, (1,))
+    return squashed_rbf_parts(gp_factory, 3, (1,), num_basis, seeds=(22, 23))
 
 
 @pytest.mark.parametrize("include_noise", [False, True])
@@ -92,22 +87,7 @@ def test_particles_follow_the_gp_posterior_exactly(gp_factory, posterior, includ
     particles = Particles(gp, policy, reward, angle_dims=(1,), num_particles=16, include_noise=include_noise, seed=3)
     start_std = torch.tensor([0.2, 0.45, 0.3], dtype=DTYPE)
     start = Gaussian(torch.tensor([0.1, 2.5, -0.3], dtype=DTYPE), torch.diag(start_std.square()))
-    horizon = 4
-    with torch.no_grad():
-        states, actions = particles.trajectories(start, horizon)
-        start_noise, step_noise, _ = particles.base_noise(horizon)
-        cache = gp.posterior_cache()
-        features = AngleFeatures(3, (1,))
-        x = start.mean + start_noise @ torch.linalg.cholesky(start.cov).mT
-        expected = [x]
-        for t in range(horizon):
-            u = policy(features(x))
-            torch.testing.assert_close(actions[:, t], u, rtol=EXACT_RTOL, atol=EXACT_ATOL)
-            mean, var = posterior(cache, torch.cat([features(x), u], dim=-1))
-            var = var.clamp_min(0.0) + (cache.hyperparameters.noise_variance if include_noise else 0.0)
-            x = x + mean + var.sqrt() * step_noise[t]
-            expected.append(x)
-    torch.testing.assert_close(states, torch.stack(expected, dim=1), rtol=EXACT_RTOL, atol=EXACT_ATOL)
+    assert_marginal_paths(particles, gp, policy, start, 4, posterior, include_noise)
 
 
 def test_rollout_structure(gp_factory):

@@ -22,7 +22,7 @@ from qtl.policies import RBFPolicy, SquashedPolicy
 from qtl.propagation import Particles
 from qtl.propagation.particles import PATHWISE_STREAM, _draw_seed
 from qtl.propagation.pathwise import FeatureDraw, MatheronPaths, draw_features, matheron_paths, path_values
-from tests.helpers import gradcheck_value_wrt_policy_and_start, quadratic_reward, tiny_config
+from tests.helpers import gradcheck_value_wrt_policy_and_start, quadratic_reward, squashed_rbf_parts, tiny_config
 from tests.propagation.restarts import assert_restarts_equal_separate
 
 DTYPE = torch.float64
@@ -144,12 +144,7 @@ def test_the_update_vanishes_where_there_are_no_data(gp_factory):
 
 def pendulum_parts(gp_factory, num_basis: int = 8):
     """A 3-D state with an angle, a squashed RBF policy: PILCO's full configuration."""
-    gp = gp_factory(40, 3, 1, (1,), seed=22)
-    gen = torch.Generator().manual_seed(23)
-    policy = SquashedPolicy(
-        RBFPolicy(4, 1, num_basis, targets=torch.randn(num_basis, 1, generator=gen, dtype=DTYPE), generator=gen), 2.0
-    )
-    return gp, policy, quadratic_reward(3, (1,))
+    return squashed_rbf_parts(gp_factory, 3, (1,), num_basis, seeds=(22, 23))
 
 
 def pathwise(gp, policy, reward, **kwargs) -> Particles:
