@@ -46,6 +46,8 @@ EXTRAPOLATE_MAX = 10
 
 # What the caller sends back for a point: the loss and its gradient `n` there (None: no valid gradient there).
 Evaluation = tuple[float, Tensor | None]
+# The answer for a point where the caller could not evaluate (the rollout broke down): the line search retreats.
+INVALID: Evaluation = (math.inf, None)
 # A step length: torch mixes Python numbers and 0-dim tensors, and so does this module (see above).
 Step = float | Tensor
 # The generator protocol: yields points `n`, is sent evaluations, returns a value.

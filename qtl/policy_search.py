@@ -27,10 +27,11 @@ from dataclasses import dataclass, field
 
 import torch
 from torch import Tensor, nn
+from torch.nn.utils import parameters_to_vector
 
 from qtl import health
 from qtl.errors import NonFiniteObjective
-from qtl.lbfgs import Evaluation, LBFGSOptions, invalid, lbfgs
+from qtl.lbfgs import INVALID, Evaluation, LBFGSOptions, invalid, lbfgs
 from qtl.plateau import PlateauMonitor, PlateauRule
 from qtl.policies import Policy, psi_names, set_psi, stack_psi
 
@@ -293,8 +294,8 @@ class _RestartBatch:
             self.best_value[restart] = value
             self.best_psi[restart] = self._psi_at(position)
 
-    def evaluate_each(self, objective: Callable[[], Tensor]) -> list[Evaluation | None]:
-        """(−V_r, −∂V_r/∂ψ_r flattened `n`) of each active restart from one rollout; None where either is not finite.
+    def evaluate_each(self, objective: Callable[[], Tensor]) -> list[Evaluation]:
+        """(−V_r, −∂V_r/∂ψ_r flattened `n`) of each active restart from one rollout; INVALID where either is not finite.
 
         Each finite value is offered as its restart's best. When the batched rollout fails
         numerically, each restart is evaluated alone (as the sequential search would).
@@ -315,17 +316,17 @@ class _RestartBatch:
         return [self._answer(position, values[position].detach(), _flat_grad(params, position))
                 for position in range(len(self.active))]
 
-    def _answer(self, position: int, value: Tensor | None, grad: Tensor | None) -> Evaluation | None:
+    def _answer(self, position: int, value: Tensor | None, grad: Tensor | None) -> Evaluation:
         """The evaluation an optimiser receives for the restart at ``position``; a finite value is offered."""
         if value is None or grad is None:  # failed alone: counted there
-            return None
+            return INVALID
         if not bool(torch.isfinite(value)):
             health.count(health.NONFINITE)
-            return None
+            return INVALID
         self._offer(position, float(value))
         if not bool(torch.isfinite(grad).all()):
             health.count(health.NONFINITE)
-            return None
+            return INVALID
         return -float(value), grad
 
     def _check_shape(self, values: Tensor) -> None:
@@ -451,7 +452,7 @@ class LBFGSSearch(_RestartingSearch):
     def _run(self, policy: nn.Module, params: list[nn.Parameter], objective: Callable[[], Tensor],
              tick: Callable[[], None], generator: torch.Generator | None) -> None:
         options = LBFGSOptions(max_iter=self.max_iter, max_eval=self.max_iter)  # torch.optim.LBFGS's settings
-        run = lbfgs(torch.cat([p.detach().reshape(-1) for p in params]), options)
+        run = lbfgs(parameters_to_vector(params).detach(), options)
         point, answer = next(run), None
         while True:
             _assign(params, point)
@@ -477,7 +478,6 @@ class LBFGSSearch(_RestartingSearch):
             answers = batch.evaluate_each(objective)
             tick()
             for restart, answer in zip(list(asked), answers, strict=True):
-                answer = (math.inf, None) if answer is None else answer  # invalid: the line search retreats
                 try:
                     asked[restart] = runs[restart].send(answer)
                 except StopIteration:  # converged, out of budget, or no valid step left: it leaves the batch
@@ -506,11 +506,11 @@ def _evaluate_flat(params: list[nn.Parameter], objective: Callable[[], Tensor]) 
         loss.backward()
     except INVALID_PSI_ERRORS as err:
         _count_failure(err)
-        return math.inf, None
+        return INVALID
     grad = torch.cat([p.grad.reshape(-1) if p.grad is not None else torch.zeros_like(p).reshape(-1) for p in params])
     if not bool(torch.isfinite(grad).all()):
         health.count(health.NONFINITE)
-        return math.inf, None
+        return INVALID
     return float(loss.detach()), grad
 
 

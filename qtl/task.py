@@ -396,7 +396,6 @@ def _search_cost(cfg: Mapping[str, Any] | None, state_dim: int) -> tuple[np.ndar
             np.array([float(w) if u else math.inf for u, w in zip(used, widths, strict=True)]))
 
 
-
 def _kinematics(cfg: Mapping[str, Any] | None, env: gymnasium.Env, state_dim: int, action_repeat: int
                 ) -> Kinematics | None:
     """``task.kinematics`` checked, its period T the given one or the env's ``dt`` × ``action_repeat``."""

@@ -128,7 +128,7 @@ def prepare(cfg: DictConfig) -> tuple[DictConfig, Path]:
     if cfg.resume == "auto":
         cfg = auto_resume(output_dir, cfg)
     elif cfg.resume is not None:
-        resumed = Path(cfg.resume).expanduser().resolve()
+        resumed = run_directory(cfg)
         cfg = resume_config(resumed, list(hydra_cfg.overrides.task))
         check_budget(cfg)
         if resumed != output_dir:  # hydra.run.dir set elsewhere: the resumed run's log gets the episodes too

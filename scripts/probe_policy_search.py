@@ -22,11 +22,12 @@ from pathlib import Path
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from qtl.build import build
+from qtl.build import Parts, build
 from qtl.checkpoint import latest_checkpoint, load_checkpoint
 from qtl.config import GROUP_SCHEMAS, typed_groups
 from qtl.data import TransitionDataset
 from qtl.episodes import run_episode
+from qtl.models import DynamicsGP
 from qtl.seeding import torch_generator
 
 EVALUATION_SEED = 100  # real episodes use env seeds 100, 101, ...: not the run's own
@@ -46,6 +47,13 @@ def with_overrides(cfg: DictConfig, overrides: list[str]) -> DictConfig:
     return OmegaConf.merge(cfg, OmegaConf.from_dotlist(rest))
 
 
+def refitted(checkpoint: dict, overrides: list[str], seed: int) -> tuple[Parts, TransitionDataset, DynamicsGP]:
+    """The checkpoint's config with ``overrides`` built, its data, and the model refitted on them (seed ``seed``)."""
+    parts = build(with_overrides(typed_groups(OmegaConf.create(checkpoint["config"])), overrides))
+    data = TransitionDataset.from_state(checkpoint["dataset"], parts.task.angle_dims)
+    return parts, data, parts.fit_dynamics(data, torch_generator(seed, 0, 0))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("run_dir", type=Path)
@@ -58,11 +66,8 @@ def main() -> None:
     torch.set_num_threads(args.threads)
 
     checkpoint = load_checkpoint(args.checkpoint or latest_checkpoint(args.run_dir))
-    cfg = with_overrides(typed_groups(OmegaConf.create(checkpoint["config"])), overrides)
-    parts = build(cfg)
+    parts, data, model = refitted(checkpoint, overrides, args.seed)
     task, start = parts.task, parts.start
-    data = TransitionDataset.from_state(checkpoint["dataset"], task.angle_dims)
-    model = parts.fit_dynamics(data, torch_generator(args.seed, 0, 0))
     policy = parts.initial_policy()
     if not args.fresh:
         policy.load_state_dict(checkpoint["policy"])

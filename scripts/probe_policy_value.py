@@ -24,17 +24,12 @@ import json
 from pathlib import Path
 
 import torch
-from omegaconf import OmegaConf
-from probe_policy_search import with_overrides
+from probe_policy_search import refitted
 from torch import Tensor
 
-from qtl.build import build
 from qtl.checkpoint import load_checkpoint
-from qtl.config import typed_groups
-from qtl.data import TransitionDataset
 from qtl.gaussian import Gaussian
 from qtl.propagation import MomentMatching, Particles
-from qtl.seeding import torch_generator
 
 
 def main() -> None:
@@ -58,11 +53,9 @@ def main() -> None:
 
     data_checkpoint = load_checkpoint(args.data)
     policy_checkpoint = load_checkpoint(args.policy) if args.policy else data_checkpoint
-    parts = build(with_overrides(typed_groups(OmegaConf.create(data_checkpoint["config"])), overrides))
-    task, start = parts.task, parts.start
-    start = Gaussian(start.mean, start.cov * args.start_scale**2)
-    data = TransitionDataset.from_state(data_checkpoint["dataset"], task.angle_dims)
-    model = parts.fit_dynamics(data, torch_generator(args.seed, 0, 0))
+    parts, data, model = refitted(data_checkpoint, overrides, args.seed)
+    task = parts.task
+    start = Gaussian(parts.start.mean, parts.start.cov * args.start_scale**2)
     policy = parts.initial_policy()
     policy.load_state_dict(policy_checkpoint["policy"])
 
@@ -74,20 +67,19 @@ def main() -> None:
               "policy_episode": policy_checkpoint["episode"], "start_scale": args.start_scale, "overrides": overrides}
     params = [p for p in policy.parameters() if p.requires_grad]
 
-    def gradient(propagator: MomentMatching | Particles, draw: int | None = None) -> Tensor:
-        """∂V/∂ψ flattened, V under the task's reward."""
-        value = propagator.rollout(start, task.horizon) if draw is None else propagator.rollout(start, task.horizon,
-                                                                                                  draw=draw)
-        return torch.cat([g.reshape(-1) for g in torch.autograd.grad(value.value, params)])
+    def gradient(value: Tensor) -> Tensor:
+        """∂V/∂ψ flattened."""
+        return torch.cat([g.reshape(-1) for g in torch.autograd.grad(value, params)])
 
     moments = MomentMatching(model, policy, parts.reward, angle_dims=task.angle_dims)
+    propagators = {name: Particles(model, policy, parts.reward, angle_dims=task.angle_dims,
+                                   num_particles=args.particles, num_features=args.features, expected_reward=False,
+                                   seed=args.seed, **settings) for name, settings in variants.items()}
     if args.gradients:
-        reference = gradient(moments)
-        for name, settings in variants.items():
-            particles = Particles(model, policy, parts.reward, angle_dims=task.angle_dims,
-                                  num_particles=args.particles, num_features=args.features, expected_reward=False,
-                                  seed=args.seed, **settings)
-            draws = torch.stack([gradient(particles, d) for d in range(args.gradients)])
+        reference = gradient(moments.rollout(start, task.horizon).value)
+        for name, particles in propagators.items():
+            draws = torch.stack([gradient(particles.rollout(start, task.horizon, draw=d).value)
+                                 for d in range(args.gradients)])
             report[f"{name}_gradient"] = {
                 "snr_median": float((draws.mean(0).abs() / draws.std(0)).median()),
                 "cosine_to_moment_matching": float(torch.nn.functional.cosine_similarity(
@@ -95,10 +87,7 @@ def main() -> None:
             }
     with torch.no_grad():
         report["moment_matching"] = float(moments.rollout(start, task.horizon).value)
-        for name, settings in variants.items():
-            particles = Particles(model, policy, parts.reward, angle_dims=task.angle_dims,
-                                  num_particles=args.particles, num_features=args.features, expected_reward=False,
-                                  seed=args.seed, **settings)
+        for name, particles in propagators.items():
             report[name] = [float(particles.rollout(start, task.horizon, draw=d).value)
                             for d in range(args.draws)]
         configured = parts.make_propagator(model, policy, parts.reward, angle_dims=task.angle_dims)

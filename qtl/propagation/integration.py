@@ -15,35 +15,31 @@ predictive N(x A + m J, Jᵀ diag(v) J).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-
 import torch
 from torch import Tensor
 
-from qtl.task import check_kinematics
+from qtl.task import Kinematics, check_kinematics
 
 
 class SpeedIntegration:
     """The linear step x_{t+1} = x_t A + Δ J of a ``state_dim``-D state (see the module docstring).
 
-    ``positions`` and ``velocities``: state indices, position k's velocity at ``velocities[k]``;
-    ``period``: T in seconds, the time between two learner steps. ``outputs``: the state dimensions the
-    GP's draws Δ stand for, in order (all but the positions).
+    ``kinematics``: the positions, their velocities (position k's at ``velocities[k]``) and the period T in
+    seconds between two learner steps. ``outputs``: the state dimensions the GP's draws Δ stand for, in order
+    (all but the positions).
     """
 
     def __init__(
         self,
         state_dim: int,
-        positions: Sequence[int],
-        velocities: Sequence[int],
-        period: float,
+        kinematics: Kinematics,
         dtype: torch.dtype = torch.float64,
         device: torch.device | str = "cpu",
     ) -> None:
-        positions, velocities = tuple(int(p) for p in positions), tuple(int(v) for v in velocities)
-        check_kinematics(state_dim, positions, velocities, period)
+        positions, velocities, period = kinematics
+        check_kinematics(state_dim, positions, velocities, period)  # a Task's are checked; one made by hand may not be
         self.state_dim = state_dim
-        self.positions, self.velocities, self.period = positions, velocities, float(period)
+        self.period = float(period)
         self.outputs = tuple(d for d in range(state_dim) if d not in positions)
         column = {d: i for i, d in enumerate(self.outputs)}
         advance = torch.eye(state_dim, dtype=torch.float64)
@@ -61,4 +57,3 @@ class SpeedIntegration:
     def covariance(self, variance: Tensor) -> Tensor:
         """Jᵀ diag(v) J `... x D x D`: the state's covariance from independent draws of variance v `... x E'`."""
         return self.scatter.mT @ (variance[..., :, None] * self.scatter)
-

@@ -287,8 +287,7 @@ class Particles:
 
         self.integration: SpeedIntegration | None = None
         if integration == "speed":
-            self.integration = SpeedIntegration(self.state_dim, kinematics.positions, kinematics.velocities,
-                                                kinematics.period, self.dtype, data["beta"].device)
+            self.integration = SpeedIntegration(self.state_dim, kinematics, self.dtype, data["beta"].device)
             data = _select_outputs(data, self.integration.outputs)
 
         # Everything that depends only on data and θ is computed here, once.

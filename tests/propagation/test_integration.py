@@ -55,7 +55,7 @@ def trapezoid(x: Tensor, delta: Tensor, kinematics: Kinematics = CARTPOLE) -> Te
 
 def test_step_is_the_trapezoid_rule_and_leaves_other_dims_to_their_draws():
     # Five dimensions: positions 0 and 3, velocities 4 and 1, dimension 2 neither (x + Δ).
-    integration = SpeedIntegration(5, positions=(0, 3), velocities=(4, 1), period=0.05)
+    integration = SpeedIntegration(5, Kinematics((0, 3), (4, 1), 0.05))
     assert integration.outputs == (1, 2, 4)
     gen = torch.Generator().manual_seed(0)
     x = torch.randn(7, 5, generator=gen, dtype=DTYPE)
@@ -71,7 +71,7 @@ def test_step_is_the_trapezoid_rule_and_leaves_other_dims_to_their_draws():
 
 def test_covariance_is_that_of_the_stepped_draws(mc):
     # Δ ~ N(m, diag v) independent per output: the state's covariance is Jᵀ diag(v) J (Monte Carlo, 5 SE).
-    integration = SpeedIntegration(4, CARTPOLE.positions, CARTPOLE.velocities, 0.3)
+    integration = SpeedIntegration(4, CARTPOLE._replace(period=0.3))
     variance = torch.tensor([0.5, 2.0], dtype=DTYPE)
     gen = torch.Generator().manual_seed(1)
     draws = torch.randn(200_000, 2, generator=gen, dtype=DTYPE) * variance.sqrt()
@@ -92,7 +92,7 @@ def test_covariance_is_that_of_the_stepped_draws(mc):
 ])
 def test_bad_kinematics_are_task_errors(positions, velocities, period):
     with pytest.raises(TaskError, match=r"task\.kinematics"):
-        SpeedIntegration(4, positions, velocities, period)
+        SpeedIntegration(4, Kinematics(positions, velocities, period))
 
 
 @pytest.mark.parametrize("include_noise", [False, True])
