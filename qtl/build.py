@@ -153,7 +153,7 @@ def build(cfg: DictConfig) -> Parts:
     _check_dropout(cfg)
     make_propagator = _with_search_cost(make_propagator, task, cfg)
     make_propagator = _with_kinematics(make_propagator, task, cfg)
-    return Parts(
+    parts = Parts(
         seed=int(cfg.seed),
         dtype=dtype,
         device=device,
@@ -167,6 +167,8 @@ def build(cfg: DictConfig) -> Parts:
         make_policy=instantiate(cfg.policy),
         kernel_backend=kernel_backend,
     )
+    _check_lr_scales(parts)
+    return parts
 
 
 def initial_start(task: Task, seed: int, dtype: torch.dtype) -> Gaussian:
@@ -206,6 +208,18 @@ def _with_kinematics(make_propagator: PropagatorFactory, task: Task, cfg: DictCo
         raise UserError(f"propagation.integration=speed, but task {task.name} declares no kinematics: add "
                         "task.kinematics (positions, velocities) or set propagation.integration=delta")
     return functools.partial(make_propagator, kinematics=task.kinematics)
+
+
+def _check_lr_scales(parts: Parts) -> None:
+    """``optimizer.lr_scales`` must name parts of the configured policy's ψ: a UserError otherwise."""
+    scales = getattr(parts.search, "lr_scales", None)
+    if not scales:
+        return
+    named = dict(parts.initial_policy().named_parameters())
+    try:
+        parts.search.param_groups(named, 1.0)
+    except ValueError as err:
+        raise UserError(str(err)) from None
 
 
 def _check_dropout(cfg: DictConfig) -> None:

@@ -306,6 +306,10 @@ class AdamConfig(OptimizerConfig):
     )
     lr_reduction: float = field(default=0.5, metadata=doc("learning rate × this at each plateau"))
     lr_min: float = field(default=0.0025, metadata=doc("a plateau at this learning rate ends the run"))
+    lr_scales: dict[str, float] = field(
+        default_factory=dict,
+        metadata=doc("learning rate × factor per part of ψ by name, e.g. +optimizer.lr_scales.support_points=0.05"),
+    )
 
 
 @dataclass

@@ -514,6 +514,17 @@ def _evaluate_flat(params: list[nn.Parameter], objective: Callable[[], Tensor]) 
     return float(loss.detach()), grad
 
 
+def _short(name: str) -> str:
+    """A parameter's own name, without the modules that hold it (``policy.support_points`` → ``support_points``)."""
+    return name.rsplit(".", 1)[-1]
+
+
+def _named(policy: nn.Module, params: list[nn.Parameter]) -> dict[str, nn.Parameter]:
+    """``params`` by their names in ``policy``."""
+    ids = {id(p) for p in params}
+    return {name: p for name, p in policy.named_parameters() if id(p) in ids}
+
+
 class AdamSearch(_RestartingSearch):
     """Adam for ``steps`` steps per run (suits stochastic objectives).
 
@@ -545,6 +556,7 @@ class AdamSearch(_RestartingSearch):
         plateau: PlateauRule | Mapping[str, float] | None = None,
         lr_reduction: float = 0.5,
         lr_min: float = 0.0025,
+        lr_scales: Mapping[str, float] | None = None,
     ) -> None:
         super().__init__(restarts, perturbation, batched)
         if steps < 1 or lr <= 0:
@@ -567,6 +579,9 @@ class AdamSearch(_RestartingSearch):
         self.dropout, self.dropout_reduction = float(dropout), float(dropout_reduction)
         self.plateau = plateau
         self.lr_reduction, self.lr_min = float(lr_reduction), float(lr_min)
+        self.lr_scales = {str(k): float(v) for k, v in (lr_scales or {}).items()}
+        if any(not v > 0 for v in self.lr_scales.values()):
+            raise ValueError(f"lr_scales must be > 0, got {self.lr_scales}")
         if scheduled:
             self.batched = False  # one restart: the sequential run is the batched one
 
@@ -576,7 +591,8 @@ class AdamSearch(_RestartingSearch):
         if dropout > 0:
             policy.set_dropout(dropout, _child_generator(generator))
         try:
-            optimiser = torch.optim.Adam(params, lr=lr)
+            named = _named(policy, params)
+            optimiser = torch.optim.Adam(self.param_groups(named, lr), lr=lr)
             monitor = None
             for _ in range(self.steps):
                 optimiser.zero_grad()
@@ -599,13 +615,22 @@ class AdamSearch(_RestartingSearch):
                 log.info("policy search: plateau after %d steps: lr %.4g, dropout %.3g", monitor.step + 1, lr, dropout)
                 monitor.annealed()
                 policy.set_dropout(dropout, _child_generator(generator) if dropout > 0 else None)
-                optimiser = torch.optim.Adam(params, lr=lr)
+                optimiser = torch.optim.Adam(self.param_groups(named, lr), lr=lr)
         finally:
             if self.dropout > 0:
                 policy.set_dropout(0.0)
 
+    def param_groups(self, named: Mapping[str, nn.Parameter], lr: float) -> list[dict]:
+        """Adam's parameter groups: each of ψ's parameters at ``lr`` × its ``lr_scales`` factor (1 if unnamed there)."""
+        unknown = set(self.lr_scales) - {_short(name) for name in named}
+        if unknown:
+            raise ValueError(f"optimizer.lr_scales names {sorted(unknown)}, which this policy does not have: "
+                             f"choose from {sorted({_short(name) for name in named})}")
+        return [{"params": [p], "lr": lr * self.lr_scales.get(_short(name), 1.0)} for name, p in named.items()]
+
     def _run_batched(self, batch: _RestartBatch, objective: Callable[[], Tensor], tick: Callable[[], None]) -> None:
-        optimiser = torch.optim.Adam(batch.trainable(), lr=self.lr)
+        named = {name: p for name, p in batch.params.items() if p.requires_grad}
+        optimiser = torch.optim.Adam(self.param_groups(named, self.lr), lr=self.lr)
         step = 0
         while batch.active and step < self.steps:
             optimiser.zero_grad()
@@ -616,7 +641,8 @@ class AdamSearch(_RestartingSearch):
             except _DropRestarts as drop:
                 moved = dict(zip(batch.trainable(), [optimiser.state[p] for p in batch.trainable()], strict=True))
                 kept = batch.drop(drop.positions)
-                optimiser = torch.optim.Adam(batch.trainable(), lr=self.lr)
+                named = {name: p for name, p in batch.params.items() if p.requires_grad}
+                optimiser = torch.optim.Adam(self.param_groups(named, self.lr), lr=self.lr)
                 for old, new in zip(moved, batch.trainable(), strict=True):
                     optimiser.state[new] = {
                         key: value[kept] if key != "step" and value.dim() > 0 else value

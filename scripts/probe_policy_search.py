@@ -34,10 +34,16 @@ EVALUATION_SEED = 100  # real episodes use env seeds 100, 101, ...: not the run'
 
 
 def with_overrides(cfg: DictConfig, overrides: list[str]) -> DictConfig:
-    """The run's config with ``group=option`` (any config group's schema) and then ``key=value`` overrides."""
+    """The run's config with ``group=option`` (any config group's schema) and then ``key=value`` overrides.
+
+    A leading ``+`` is dropped (the typed groups hold every key); a key outside the config is refused, not ignored.
+    """
     rest = []
     for override in overrides:
+        override = override.removeprefix("+")  # Hydra's "add a key": the typed groups take it as a plain key
         key, _, value = override.partition("=")
+        if key.split(".", 1)[0] not in cfg:
+            raise SystemExit(f"unknown override {override!r}: {key.split('.', 1)[0]!r} is not in the run's config")
         if key in GROUP_SCHEMAS:  # `group=option` replaces the whole node, as on the CLI
             if value not in GROUP_SCHEMAS[key]:
                 raise SystemExit(f"unknown {key}={value!r}: choose one of {sorted(GROUP_SCHEMAS[key])}")

@@ -6,6 +6,7 @@ Batched L-BFGS runs each restart's own L-BFGS in lockstep: per restart it is the
 from __future__ import annotations
 
 import functools
+import itertools
 import logging
 import math
 from collections.abc import Callable
@@ -16,7 +17,8 @@ from hydra.utils import instantiate
 from torch import nn
 
 from qtl import health
-from qtl.errors import NonFiniteObjective
+from qtl.build import build
+from qtl.errors import NonFiniteObjective, UserError
 from qtl.gaussian import Gaussian, GaussianMap
 from qtl.plateau import PlateauRule
 from qtl.policies import Policy, RBFNetwork, RBFPolicy, SquashedPolicy
@@ -570,3 +572,48 @@ def test_a_plateau_rule_given_as_hydra_passes_it():
     assert plain.plateau == PlateauRule(0.9, 0.05, 3, 1)
     with pytest.raises(TypeError):
         AdamSearch(plateau={"windw": 3})
+
+
+# -- per-parameter learning rates ------------------------------------------------------------------
+
+
+def test_lr_scales_set_each_parameters_step_through_the_whole_schedule():
+    """``lr_scales={"centres": 0.1}``: every Adam step moves the centres by 0.1 × the weights' step, at every stage."""
+    policy = tiny_network()
+    centres = []
+
+    noise = torch.randn(5000, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+
+    def objective() -> torch.Tensor:  # a constant gradient under flat noise: Adam steps by its lr, plateaus come
+        centres.append(policy.centres.detach().clone())
+        return 0.1 * (policy.weights.sum() + policy.centres.sum()) + noise[len(centres)]
+
+    scheduled_search(lr_scales={"centres": 0.1})(policy, objective, generator=torch.Generator().manual_seed(0))
+    steps = [float((b - a)[0, 0]) for a, b in itertools.pairwise(centres)]
+    assert steps[0] == pytest.approx(0.1 * LR, rel=1e-4)
+    assert sorted({round(s / 0.1, 6) for s in steps}, reverse=True) == [lr for lr, _ in STAGES]  # halved, scaled
+
+
+@pytest.mark.parametrize("batched", [False, True])
+def test_lr_scales_apply_to_batched_and_sequential_restarts(batched):
+    """Two steps of 0.05 × 0.2: the best ψ seen is the second (after one step of ±0.01)."""
+    policy = BowlPolicy([0.0, 0.0])
+    AdamSearch(steps=2, lr=0.05, restarts=2, perturbation=0.0, batched=batched, lr_scales={"x": 0.2})(
+        policy, policy.value)
+    torch.testing.assert_close(policy.x.detach(), torch.tensor([0.01, -0.01], dtype=torch.float64))
+
+
+def test_lr_scales_naming_no_parameter_are_refused():
+    policy = tiny_network()
+    with pytest.raises(ValueError, match=r"lr_scales names \['support_points'\].*choose from \['centres', "):
+        AdamSearch(steps=1, lr_scales={"support_points": 0.1})(policy, lambda: policy.weights.sum())
+    with pytest.raises(ValueError, match="lr_scales must be > 0"):
+        AdamSearch(lr_scales={"centres": 0.0})
+
+
+def test_config_lr_scales_are_checked_against_the_policy_at_build():
+    """``optimizer.lr_scales`` reaches AdamSearch; a name the policy lacks is a UserError before any episode."""
+    for override in ("+optimizer.lr_scales.support_points=0.05", "++optimizer.lr_scales={support_points:0.05}"):
+        assert build(train_config("optimizer=adam", override)).search.lr_scales == {"support_points": 0.05}
+    with pytest.raises(UserError, match=r"lr_scales names \['centres'\], which this policy does not have"):
+        build(train_config("optimizer=adam", "+optimizer.lr_scales.centres=0.1"))
