@@ -32,6 +32,12 @@ def positive(name: str, value: object) -> float:
     return float(value)  # type: ignore[arg-type]
 
 
+def nonzero(name: str, value: object) -> float:
+    """`value` as a float if it is a finite number other than 0."""
+    require(is_real(value) and value != 0, name, value, "a finite number other than 0")  # type: ignore[operator]
+    return float(value)  # type: ignore[arg-type]
+
+
 def nonnegative(name: str, value: object) -> float:
     """`value` as a float if it is a finite number >= 0."""
     require(is_real(value) and value >= 0, name, value, "a finite number >= 0")  # type: ignore[operator]

@@ -15,6 +15,7 @@ from envs._validation import (
     check_render_mode,
     finite_array,
     nonnegative,
+    nonzero,
     positive,
     positive_integer,
     require,
@@ -132,7 +133,8 @@ class MountainCarEnv(gymnasium.Env):
     ## Arguments
 
     - `power`: the engine power factor, P = 0.001 × `power`; the transfer targets are 0.5, 1.5
-      and 3.0 (default 1.0).
+      and 3.0 (default 1.0). A negative factor reverses the engine (a mirrored actuator: throttle
+      +1 pushes left), a far target for transfer.
     - `action_repeat`: map steps per decision (default 5).
     - `horizon`: decisions until truncation (default 80).
     - `start_mean`: mean (x, v) of the start state (default (−0.5, 0)).
@@ -164,7 +166,7 @@ class MountainCarEnv(gymnasium.Env):
         obs_noise_std: float = DEFAULT_OBS_NOISE_STD,
         render_mode: str | None = None,
     ) -> None:
-        self.power = positive("power", power)
+        self.power = nonzero("power", power)
         reward_width = positive("reward_width", reward_width)
         self.velocity_weight = nonnegative("velocity_weight", velocity_weight)
         self.obs_noise_std = nonnegative("obs_noise_std", obs_noise_std)

@@ -90,7 +90,9 @@ FAMILIES = {
                        benchlib.ROOT / "runs" / "bench_cartpole" / "cartpole-fast"),
 }
 ARMS = ("pilco", "transfer", "qtl", "gated")  # the learning runs per target and seed
-EXPLORE_ARMS = ("pilco", "transfer")  # the runs per extra target of --explore
+EXPLORE_ARMS = ("pilco", "transfer")  # the runs per extra target of --explore (and "gated" with --gate)
+# What --explore-arms may choose: also QTL-PILCO (θ_s and ψ_s) and QTL-PILCO gated.
+EXPLORE_CHOICES = ("pilco", "transfer", "qtl", "gated", "gated_qtl")
 
 
 def target_config(family: Family, value: float, seed: int, extra: list[str] | None = None):
@@ -303,8 +305,10 @@ def explore(family: Family, args: argparse.Namespace) -> tuple[dict, str]:
     """
     root = args.runs_dir / family.task / "explore"
     transfer = [f"approach={args.approach}", "transfer.policy=false", "transfer.compliance=kernel"]
-    gated = [] if args.gate is None else [*transfer, f"transfer.min_compliance={args.gate}"]
-    arms = [*EXPLORE_ARMS, *(["gated"] if gated else [])]
+    qtl = [f"approach={args.approach}", "transfer.compliance=kernel"]
+    gate = [] if args.gate is None else [f"transfer.min_compliance={args.gate}"]
+    gated = [*transfer, *gate] if gate else []
+    arms = args.explore_arms or [*EXPLORE_ARMS, *(["gated"] if gated else [])]
     env = {target: env_override(family, *target) for target in args.explore}  # composed here, not in the threads
 
     def run_dir(arm: str, key: str, value: float, seed: int) -> Path:
@@ -313,7 +317,8 @@ def explore(family: Family, args: argparse.Namespace) -> tuple[dict, str]:
     def run(job: tuple[str, tuple[str, float], int]) -> None:
         arm, (key, value), seed = job
         source = [f"transfer.source={family.sources / f'seed_{seed}'}"]
-        extra = {"pilco": [], "transfer": [*transfer, *source], "gated": [*gated, *source]}[arm]
+        extra = {"pilco": [], "transfer": [*transfer, *source], "gated": [*gated, *source], "qtl": [*qtl, *source],
+                 "gated_qtl": [*qtl, *gate, *source]}[arm]
         overrides = [f"task={family.task}", env[key, value], f"seed={seed}",
                      f"episodes={args.episodes}", *extra, *args.overrides]
         ensure_run(overrides, run_dir(arm, key, value, seed), args.episodes + 1)
@@ -330,7 +335,11 @@ def explore(family: Family, args: argparse.Namespace) -> tuple[dict, str]:
         f"θ-only transfer (`approach={args.approach} transfer.policy=false`) from the "
         f"{family.label(family.source_value)} source of the same seed. {budget} episodes per run (1 random + "
         f"{args.episodes} learned), one torch thread each, {args.jobs} in parallel"
-        + ("" if not gated else f"; gated: the transfer with `transfer.min_compliance={args.gate}`") + ". Runs: "
+        + ("" if not gated else f"; gated: the transfer with `transfer.min_compliance={args.gate}`")
+        + ("" if "qtl" not in arms and "gated_qtl" not in arms else
+           f"; qtl: `approach={args.approach}` as its preset (θ_s and ψ_s, initial episode run by ψ_s), gated_qtl: the "
+           "same with the gate")
+        + ". Runs: "
         f"`{benchlib.display_path(root)}`. AUC: trapezoid over the {budget} episodes; final: mean of the last 3.",
         "",
         "| target | arm | first success per seed | solved | AUC | final | Λ at the first model "
@@ -353,7 +362,7 @@ def explore(family: Family, args: argparse.Namespace) -> tuple[dict, str]:
                 benchlib.mean_std([r["final_performance"] for r in per_seed]),
                 benchlib.mean_std(first_lambda, 2) if first_lambda else "—",
                 " ".join("—" if r["fell_back_after"] is None else str(r["fell_back_after"]) for r in per_seed)
-                if arm == "gated" else "",
+                if arm.startswith("gated") else "",
             ]) + " |")
     lines += ["", "Returns per episode (target, arm, seed: curve):", ""]
     for target, by_arm in results.items():
@@ -411,6 +420,9 @@ def main() -> None:
                         help="other targets of the family, any env argument (e.g. friction=5.0 max_force=5.0): PILCO "
                              "and θ-only transfer on each, for a target where transfer hurts (a table of their own; "
                              "only this: the Λ table and --learn are other calls)")
+    parser.add_argument("--explore-arms", nargs="+", choices=EXPLORE_CHOICES,
+                        help="the runs per --explore target (default: pilco transfer, and gated with --gate); qtl: "
+                             "θ_s and ψ_s, gated_qtl: the same with the gate")
     args, args.overrides = parser.parse_known_args()
     try:
         args.explore = parse_targets(args.explore)
@@ -421,6 +433,10 @@ def main() -> None:
     args.arms = [arm for arm in ARMS if arm in args.arms]
     if args.gate is not None and not 0.0 <= args.gate <= 1.0:
         parser.error(f"--gate must be in [0, 1], got {args.gate}")
+    if args.explore_arms and not args.explore:
+        parser.error("--explore-arms needs --explore targets")
+    if args.explore_arms and any(a.startswith("gated") for a in args.explore_arms) and args.gate is None:
+        parser.error("--explore-arms gated and gated_qtl need --gate: the transfer.min_compliance chosen beforehand")
     if args.learn and "gated" in args.arms and (args.gate is None or not 0.0 <= args.gate <= 1.0):
         parser.error("--learn needs --gate in [0, 1]: the transfer.min_compliance chosen from the Λ table")
     families = dict(FAMILIES)

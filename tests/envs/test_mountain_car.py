@@ -131,6 +131,16 @@ def test_map_step_formula() -> None:
     assert map_step(0.59, 0.05, 1.0, 1.0)[0] == MAX_POSITION  # right end clips the position
 
 
+def test_a_negative_power_reverses_the_engine() -> None:
+    """power = −1 mirrors the actuator: throttle a there moves the car as throttle −a does at power 1."""
+    env, mirror = MountainCarEnv(power=-1.0), MountainCarEnv(power=1.0)
+    for e in (env, mirror):
+        e.reset(seed=3)
+    for a in (0.8, -0.4, 1.0):
+        assert np.array_equal(env.step(np.array([a]))[0], mirror.step(np.array([-a]))[0])
+    assert map_step(-0.3, 0.01, 0.7, -1.0) == map_step(-0.3, 0.01, -0.7, 1.0)
+
+
 def test_one_decision_is_action_repeat_map_steps() -> None:
     env = MountainCarEnv(action_repeat=5)
     env.reset(options={"state": START})
@@ -210,7 +220,6 @@ def test_reward_is_one_at_the_goal_and_near_zero_in_the_valley() -> None:
     ("name", "value"),
     [
         ("power", 0.0),
-        ("power", -1.0),
         ("power", float("inf")),
         ("action_repeat", 0),
         ("action_repeat", 2.0),
