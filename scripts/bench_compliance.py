@@ -93,6 +93,13 @@ ARMS = ("pilco", "transfer", "qtl", "gated")  # the learning runs per target and
 EXPLORE_ARMS = ("pilco", "transfer")  # the runs per extra target of --explore (and "gated" with --gate)
 # What --explore-arms may choose: also QTL-PILCO (θ_s and ψ_s) and QTL-PILCO gated.
 EXPLORE_CHOICES = ("pilco", "transfer", "qtl", "gated", "gated_qtl")
+EXPLORE_ARM_HELP = {  # how each arm's table describes it
+    "pilco": "pilco: PILCO",
+    "transfer": "transfer: θ-only transfer (`approach={approach} transfer.policy=false`, random initial episode)",
+    "gated": "gated: the same with `transfer.min_compliance={gate}`",
+    "qtl": "qtl: `approach={approach}` as its preset (θ_s and ψ_s, initial episode run by ψ_s)",
+    "gated_qtl": "gated_qtl: qtl with `transfer.min_compliance={gate}`",
+}
 
 
 def target_config(family: Family, value: float, seed: int, extra: list[str] | None = None):
@@ -329,18 +336,14 @@ def explore(family: Family, args: argparse.Namespace) -> tuple[dict, str]:
     budget = args.episodes + 1
     results: dict = {}
     lines = [
-        f"## Compliance: {family.task}, further targets: PILCO, θ-only transfer and the gate",
+        f"## Compliance: {family.task}, further targets: PILCO, transfer and the gate",
         "",
-        f"`{benchlib.command_line()}` — {benchlib.today()}, commit {benchlib.commit()}. Per target and seed: PILCO and "
-        f"θ-only transfer (`approach={args.approach} transfer.policy=false`) from the "
-        f"{family.label(family.source_value)} source of the same seed. {budget} episodes per run (1 random + "
-        f"{args.episodes} learned), one torch thread each, {args.jobs} in parallel"
-        + ("" if not gated else f"; gated: the transfer with `transfer.min_compliance={args.gate}`")
-        + ("" if "qtl" not in arms and "gated_qtl" not in arms else
-           f"; qtl: `approach={args.approach}` as its preset (θ_s and ψ_s, initial episode run by ψ_s), gated_qtl: the "
-           "same with the gate")
-        + ". Runs: "
-        f"`{benchlib.display_path(root)}`. AUC: trapezoid over the {budget} episodes; final: mean of the last 3.",
+        f"`{benchlib.command_line()}` — {benchlib.today()}, commit {benchlib.commit()}. Per target and seed, from the "
+        f"{family.label(family.source_value)} source of the same seed: "
+        + "; ".join(EXPLORE_ARM_HELP[arm].format(approach=args.approach, gate=args.gate) for arm in arms)
+        + f". {budget} episodes per run (1 random + {args.episodes} learned), one torch thread each, {args.jobs} in "
+        f"parallel. Runs: `{benchlib.display_path(root)}`. AUC: trapezoid over the {budget} episodes; final: mean of "
+        "the last 3.",
         "",
         "| target | arm | first success per seed | solved | AUC | final | Λ at the first model "
         "| fell back after episode |",

@@ -119,7 +119,7 @@ def test_exploration_runs_qtl_pilco_and_its_gate(runs, tmp_path) -> None:
     assert set(arms) == {"qtl", "gated_qtl"}
     assert arms["gated_qtl"][0]["returns"][0] == arms["qtl"][0]["returns"][0]  # both start with ψ_s's episode
     assert arms["gated_qtl"][0]["fell_back_after"] == 1 and arms["qtl"][0]["fell_back_after"] is None
-    assert "| pole_mass = 2 | gated_qtl |" in table and "gated_qtl: the same with the gate" in table
+    assert "| pole_mass = 2 | gated_qtl |" in table and "gated_qtl: qtl with `transfer.min_compliance=1.0`" in table
 
 
 @pytest.mark.parametrize("item", ["friction", "friction=lots", "=5", "a b=1"])
