@@ -333,6 +333,12 @@ def explore(family: Family, args: argparse.Namespace) -> tuple[dict, str]:
     jobs = [(arm, target, seed) for seed in args.seeds for target in args.explore for arm in arms]
     with ThreadPoolExecutor(max_workers=args.jobs) as pool:
         list(pool.map(run, jobs))
+    link_experiment(root, family.sources, arms)
+    name = f"compliance_{family.task}_explore_learning_curves"
+    args.figures.mkdir(parents=True, exist_ok=True)
+    figure, *others = plot_learning_curves(discover(root), args.figures / name)
+    for other in others:
+        other.unlink()
     budget = args.episodes + 1
     results: dict = {}
     lines = [
@@ -344,6 +350,8 @@ def explore(family: Family, args: argparse.Namespace) -> tuple[dict, str]:
         + f". {budget} episodes per run (1 random + {args.episodes} learned), one torch thread each, {args.jobs} in "
         f"parallel. Runs: `{benchlib.display_path(root)}`. AUC: trapezoid over the {budget} episodes; final: mean of "
         "the last 3.",
+        "",
+        f"![learning curves, mean ± std over seeds]({figure.relative_to(args.figures.parent)})",
         "",
         "| target | arm | first success per seed | solved | AUC | final | Λ at the first model "
         "| fell back after episode |",

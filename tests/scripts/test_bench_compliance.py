@@ -96,7 +96,8 @@ def test_exploration_runs_any_env_argument_through_the_cli(runs, tmp_path) -> No
     assert bench_compliance.env_override(family, "friction", 5.0) == "+task.env.friction=5"
     assert bench_compliance.env_override(family, "pole_mass", 2.0) == "task.env.pole_mass=2"
     args = argparse.Namespace(runs_dir=tmp_path, approach="qtl_bayesian", episodes=1, jobs=2, seeds=[SEED],
-                              overrides=list(TINY), explore=[("friction", 5.0)], gate=1.0, explore_arms=None)
+                              overrides=list(TINY), explore=[("friction", 5.0)], gate=1.0, explore_arms=None,
+                              figures=tmp_path / "results")
     results, table = bench_compliance.explore(family, args)
     arms = results["friction=5"]
     assert set(arms) == {"pilco", "transfer", "gated"} and len(arms["pilco"][0]["returns"]) == 2
@@ -105,6 +106,8 @@ def test_exploration_runs_any_env_argument_through_the_cli(runs, tmp_path) -> No
     run_dir = tmp_path / "cartpole" / "explore" / "pilco" / "friction5" / f"seed_{SEED}"
     assert "+task.env.friction=5" in (run_dir / ".hydra" / "overrides.yaml").read_text()
     assert "| friction = 5 | transfer |" in table and table.count("\n- friction=5, ") == 3
+    assert (tmp_path / "results" / "compliance_cartpole_explore_learning_curves.png").stat().st_size > 0
+    assert "](results/compliance_cartpole_explore_learning_curves.png)" in table
 
 
 def test_exploration_runs_qtl_pilco_and_its_gate(runs, tmp_path) -> None:
@@ -113,7 +116,7 @@ def test_exploration_runs_qtl_pilco_and_its_gate(runs, tmp_path) -> None:
     family = dataclasses.replace(bench_compliance.FAMILIES["cartpole"], sources=sources)
     args = argparse.Namespace(runs_dir=tmp_path, approach="qtl_bayesian", episodes=1, jobs=2, seeds=[SEED],
                               overrides=list(TINY), explore=[("pole_mass", 2.0)], gate=1.0,
-                              explore_arms=["qtl", "gated_qtl"])
+                              explore_arms=["qtl", "gated_qtl"], figures=tmp_path / "results")
     results, table = bench_compliance.explore(family, args)
     arms = results["pole_mass=2"]
     assert set(arms) == {"qtl", "gated_qtl"}
