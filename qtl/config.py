@@ -296,7 +296,11 @@ class AdamConfig(OptimizerConfig):
     restarts: int = field(default=1, metadata=doc("runs in all, the first from the current ψ"))
     perturbation: float = field(default=0.1, metadata=doc(PERTURBATION_HELP))
     batched: bool = field(default=True, metadata=doc(BATCHED_HELP))
-    keep: str = field(default="best", metadata=doc("best | last: the ψ a run leaves (last: for noisy objectives)"))
+    keep: str = field(
+        default="best",
+        metadata=doc("best | last | validated: the ψ a run leaves (last: for noisy objectives; validated: the best "
+                     "of the last and 20 snapshots along the run, each valued afresh)"),
+    )
     dropout: float = field(
         default=0.0, metadata=doc("policy basis dropout during the search (MC-PILCO; policy=rbf_network, particles)"),
     )

@@ -39,8 +39,11 @@ log = logging.getLogger(__name__)
 
 # Parameters with a spread below this are perturbed on this scale instead.
 MIN_PERTURBATION_SCALE = 1e-3
-# Which ψ a run leaves: the best it evaluated, or its last (for a noisy objective).
-KEEP = ("best", "last")
+# Which ψ a run leaves: the best it evaluated, its last (for a noisy objective), or the best of snapshots along
+# the run valued afresh at the end (for a noisy objective whose run may leave a good ψ behind).
+KEEP = ("best", "last", "validated")
+# keep="validated": ψ is snapshotted this many times along a run (every steps // SNAPSHOTS steps), besides the last.
+SNAPSHOTS = 20
 # Errors of an evaluation at a numerically invalid ψ: they end a run (sequential) or drop a restart (batched).
 INVALID_PSI_ERRORS = (NonFiniteObjective, torch.linalg.LinAlgError)
 
@@ -122,6 +125,7 @@ class _RestartingSearch:
         self.batched = bool(batched)
 
     keep = "best"  # which ψ a run leaves (see KEEP)
+    snapshots: list[dict[str, Tensor]]  # keep="validated": the ψ snapshotted along the current run
 
     def _run(self, policy: nn.Module, params: list[nn.Parameter], objective: Callable[[], Tensor],
              tick: Callable[[], None], generator: torch.Generator | None) -> None:
@@ -175,18 +179,26 @@ class _RestartingSearch:
                 return value
 
             params = [p for p in policy.parameters() if p.requires_grad]
+            self.snapshots = []
+            candidates: list[dict[str, Tensor]] = []
             try:
                 self._run(policy, params, tracked, tick, generator)
-                if self.keep == "last":  # the final ψ, valued afresh (no dropout now)
-                    with torch.no_grad():
-                        value = float(_checked(objective()))
-                    seen.calls += 1
-                    seen.value, seen.state = value, {k: v.detach().clone() for k, v in policy.state_dict().items()}
+                candidates = [*self.snapshots, _state(policy)]
             except INVALID_PSI_ERRORS as err:
                 _count_failure(err)
                 health.count(health.SEARCH_STOPPED)
-                log.warning("policy search run %d stopped at a numerically invalid ψ (%s); "
-                            "it keeps the best ψ it evaluated", run, err)
+                candidates = self.snapshots  # taken before the invalid ψ; without any, the best ψ evaluated
+                log.warning("policy search run %d stopped at a numerically invalid ψ (%s); it keeps the best ψ %s",
+                            run, err, "of its snapshots" if candidates else "it evaluated")
+            if self.keep != "best" and candidates:  # the final ψ (and the snapshots), valued afresh (no dropout now)
+                try:
+                    seen.value, seen.state, calls = _valued_afresh(policy, objective, candidates)
+                    seen.calls += calls
+                except INVALID_PSI_ERRORS as err:
+                    _count_failure(err)
+                    health.count(health.SEARCH_STOPPED)
+                    log.warning("policy search run %d: its final ψ failed to evaluate (%s); it keeps the best ψ it "
+                                "evaluated", run, err)
             run_values.append(seen.value)
             run_evaluations.append(seen.calls)
             if seen.state is not None and seen.value > best.value:
@@ -219,6 +231,38 @@ class _RestartingSearch:
         policy.load_state_dict({**states[0], **batch.best_psi[best]})
         return SearchResult(value=batch.best_value[best], evaluations=sum(batch.calls), run_values=batch.best_value,
                             rollouts=batch.rollouts, run_evaluations=batch.calls)
+
+
+def _state(policy: nn.Module) -> dict[str, Tensor]:
+    """A copy of ``policy``'s ψ."""
+    return {k: v.detach().clone() for k, v in policy.state_dict().items()}
+
+
+def _valued_afresh(
+    policy: nn.Module, objective: Callable[[], Tensor], states: list[dict[str, Tensor]],
+) -> tuple[float, dict[str, Tensor], int]:
+    """The best of ``states`` by one fresh value each (no gradient), left in ``policy``; its value and the calls made.
+
+    A state whose value fails is passed over; if every one fails, the last failure is raised.
+    """
+    best: tuple[float, dict[str, Tensor]] | None = None
+    failures: list[Exception] = []
+    for state in states:
+        policy.load_state_dict(state)
+        try:
+            with torch.no_grad():
+                value = float(_checked(objective()))
+        except INVALID_PSI_ERRORS as err:
+            failures.append(err)
+            continue
+        if best is None or value > best[0]:
+            best = (value, state)
+    if best is None:
+        raise failures[-1]  # the run's own handler counts it
+    for err in failures:
+        _count_failure(err)
+    policy.load_state_dict(best[1])
+    return best[0], best[1], len(states)
 
 
 class _DropRestarts(Exception):
@@ -538,8 +582,10 @@ class AdamSearch(_RestartingSearch):
     :class:`~qtl.plateau.PlateauRule`) a plateau of the objective multiplies the learning rate by
     ``lr_reduction`` (not below ``lr_min``), lowers p by ``dropout_reduction`` and restarts Adam's
     moments, and a plateau at ``lr_min`` ends the run early. ``keep``: ``best`` (the best ψ seen,
-    for a deterministic objective) or ``last`` (the final ψ, valued by one more evaluation without
-    dropout: the best of many noisy values is biased).
+    for a deterministic objective), ``last`` (the final ψ, valued by one more evaluation without
+    dropout: the best of many noisy values is biased) or ``validated`` (the final ψ and ``SNAPSHOTS``
+    snapshots along the run, each valued by one more evaluation without dropout, the best of them: a
+    noisy search can leave a good ψ behind).
     """
 
     def __init__(
@@ -594,12 +640,15 @@ class AdamSearch(_RestartingSearch):
             named = _named(policy, params)
             optimiser = torch.optim.Adam(self.param_groups(named, lr), lr=lr)
             monitor = None
-            for _ in range(self.steps):
+            every = max(1, self.steps // SNAPSHOTS)
+            for step in range(self.steps):
                 optimiser.zero_grad()
                 value = _checked(objective())
                 (-value).backward()
                 optimiser.step()
                 tick()
+                if self.keep == "validated" and (step + 1) % every == 0 and step + 1 < self.steps:
+                    self.snapshots.append(_state(policy))
                 if self.plateau is None:
                     continue
                 if monitor is None:

@@ -523,6 +523,50 @@ def test_keep_last_with_sequential_restarts_keeps_the_best_final_value():
     assert torch.equal(point.x.detach(), objective.points[20 if finals[0] >= finals[1] else 41])
 
 
+class RiseAndFall:
+    """Adam's steps climb ``point.x[0]`` at a constant rate (the gradient is constant); the value, peaked at 1,
+    is what the search reports: it rises along the run and falls again, as a noisy search that leaves its optimum.
+    ``fail_above``: the value is NaN where x[0] exceeds it (a ψ that fails to evaluate)."""
+
+    def __init__(self, point: Point, fail_above: float | None = None) -> None:
+        self.point, self.fail_above = point, fail_above
+        self.points: list[torch.Tensor] = []
+
+    def __call__(self) -> torch.Tensor:
+        x = self.point.x[0]
+        self.points.append(self.point.x.detach().clone())
+        value = x - x.detach() - (x.detach() - 1.0).square()
+        if self.fail_above is not None and float(x) > self.fail_above:
+            value = value * math.nan
+        return value
+
+
+def test_keep_validated_leaves_the_best_snapshot_valued_afresh():
+    """100 steps of 0.02 take x from 0 to 2; snapshots every 5 steps; the one at x = 1 (step 50) is kept."""
+    point = Point([0.0, 0.0])
+    objective = RiseAndFall(point)
+    result = AdamSearch(steps=100, lr=0.02, keep="validated")(point, objective)
+    assert result.evaluations == len(objective.points) == 100 + 20  # every step, 19 snapshots and the final ψ
+    assert float(point.x[0]) == pytest.approx(1.0, abs=1e-6) and result.value == pytest.approx(0.0, abs=1e-10)
+    last = AdamSearch(steps=100, lr=0.02, keep="last")(Point([0.0, 0.0]), RiseAndFall(Point([0.0, 0.0])))
+    assert last.value < -0.9  # keep="last" leaves x ≈ 2, where the value is ≈ −1
+
+
+def test_keep_validated_passes_over_a_snapshot_that_fails():
+    point = Point([0.0, 0.0])
+    health.take()
+    result = AdamSearch(steps=100, lr=0.02, keep="validated")(point, RiseAndFall(point, fail_above=1.5))
+    counts = health.take()
+    # The run stops at its first NaN (x > 1.5, step 76); its snapshots (steps 5-75) are valued and x = 1 is kept.
+    assert float(point.x[0]) == pytest.approx(1.0, abs=1e-6) and result.value == pytest.approx(0.0, abs=1e-10)
+    assert counts[health.SEARCH_STOPPED] == 1 and counts[health.NONFINITE] == 1
+
+
+def test_config_keeps_validated():
+    search = instantiate(train_config("optimizer=adam", "optimizer.keep=validated").optimizer)
+    assert isinstance(search, AdamSearch) and search.keep == "validated" and search.batched is False
+
+
 def test_a_dropout_search_is_reproducible_from_its_generator():
     """The masks come from the search's generator: the same seed, the same ψ; another seed, another ψ."""
     features = torch.randn(30, 2, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
