@@ -299,7 +299,7 @@ class AdamConfig(OptimizerConfig):
     keep: str = field(
         default="best",
         metadata=doc("best | last | validated: the ψ a run leaves (last: for noisy objectives; validated: the best "
-                     "of the last and 20 snapshots along the run, each valued afresh)"),
+                     "of the start, 20 snapshots along the run and the last, each valued afresh)"),
     )
     dropout: float = field(
         default=0.0, metadata=doc("policy basis dropout during the search (MC-PILCO; policy=rbf_network, particles)"),

@@ -39,8 +39,8 @@ log = logging.getLogger(__name__)
 
 # Parameters with a spread below this are perturbed on this scale instead.
 MIN_PERTURBATION_SCALE = 1e-3
-# Which ψ a run leaves: the best it evaluated, its last (for a noisy objective), or the best of snapshots along
-# the run valued afresh at the end (for a noisy objective whose run may leave a good ψ behind).
+# Which ψ a run leaves: the best it evaluated, its last (for a noisy objective), or the best of its start, snapshots
+# along the run and its last, valued afresh at the end (for a noisy objective whose run may leave a good ψ behind).
 KEEP = ("best", "last", "validated")
 # keep="validated": ψ is snapshotted this many times along a run (every steps // SNAPSHOTS steps), besides the last.
 SNAPSHOTS = 20
@@ -179,7 +179,7 @@ class _RestartingSearch:
                 return value
 
             params = [p for p in policy.parameters() if p.requires_grad]
-            self.snapshots = []
+            self.snapshots = [_state(policy)] if self.keep == "validated" else []  # the run's start is one
             candidates: list[dict[str, Tensor]] = []
             try:
                 self._run(policy, params, tracked, tick, generator)
@@ -583,9 +583,9 @@ class AdamSearch(_RestartingSearch):
     ``lr_reduction`` (not below ``lr_min``), lowers p by ``dropout_reduction`` and restarts Adam's
     moments, and a plateau at ``lr_min`` ends the run early. ``keep``: ``best`` (the best ψ seen,
     for a deterministic objective), ``last`` (the final ψ, valued by one more evaluation without
-    dropout: the best of many noisy values is biased) or ``validated`` (the final ψ and ``SNAPSHOTS``
-    snapshots along the run, each valued by one more evaluation without dropout, the best of them: a
-    noisy search can leave a good ψ behind).
+    dropout: the best of many noisy values is biased) or ``validated`` (the run's start, ``SNAPSHOTS``
+    snapshots along the run and the final ψ, each valued by one more evaluation without dropout, the best
+    of them: a noisy search can leave a good ψ behind, and never leaves a worse one than it began with).
     """
 
     def __init__(

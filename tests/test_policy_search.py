@@ -546,7 +546,7 @@ def test_keep_validated_leaves_the_best_snapshot_valued_afresh():
     point = Point([0.0, 0.0])
     objective = RiseAndFall(point)
     result = AdamSearch(steps=100, lr=0.02, keep="validated")(point, objective)
-    assert result.evaluations == len(objective.points) == 100 + 20  # every step, 19 snapshots and the final ψ
+    assert result.evaluations == len(objective.points) == 100 + 21  # every step; the start, 19 snapshots, the final ψ
     assert float(point.x[0]) == pytest.approx(1.0, abs=1e-6) and result.value == pytest.approx(0.0, abs=1e-10)
     last = AdamSearch(steps=100, lr=0.02, keep="last")(Point([0.0, 0.0]), RiseAndFall(Point([0.0, 0.0])))
     assert last.value < -0.9  # keep="last" leaves x ≈ 2, where the value is ≈ −1
@@ -560,6 +560,13 @@ def test_keep_validated_passes_over_a_snapshot_that_fails():
     # The run stops at its first NaN (x > 1.5, step 76); its snapshots (steps 5-75) are valued and x = 1 is kept.
     assert float(point.x[0]) == pytest.approx(1.0, abs=1e-6) and result.value == pytest.approx(0.0, abs=1e-10)
     assert counts[health.SEARCH_STOPPED] == 1 and counts[health.NONFINITE] == 1
+
+
+def test_keep_validated_never_leaves_a_worse_psi_than_its_start():
+    """Started at the peak (x = 1), every step makes the value worse: the start, valued afresh, is kept."""
+    point = Point([1.0, 0.0])
+    result = AdamSearch(steps=40, lr=0.02, keep="validated")(point, RiseAndFall(point))
+    assert float(point.x[0]) == 1.0 and result.value == 0.0
 
 
 def test_config_keeps_validated():
