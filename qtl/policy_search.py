@@ -93,6 +93,11 @@ def _checked(value: Tensor) -> Tensor:
     return value
 
 
+def _state(policy: nn.Module) -> dict[str, Tensor]:
+    """A copy of ``policy``'s ψ."""
+    return {k: v.detach().clone() for k, v in policy.state_dict().items()}
+
+
 class _BestSeen:
     """The best ψ an objective has been evaluated at, and its value."""
 
@@ -105,7 +110,7 @@ class _BestSeen:
     def offer(self, value: float) -> None:
         if value > self.value:
             self.value = value
-            self.state = {k: v.detach().clone() for k, v in self.policy.state_dict().items()}
+            self.state = _state(self.policy)
 
 
 class _RestartingSearch:
@@ -125,10 +130,10 @@ class _RestartingSearch:
         self.batched = bool(batched)
 
     keep = "best"  # which ψ a run leaves (see KEEP)
-    snapshots: list[dict[str, Tensor]]  # keep="validated": the ψ snapshotted along the current run
 
     def _run(self, policy: nn.Module, params: list[nn.Parameter], objective: Callable[[], Tensor],
-             tick: Callable[[], None], generator: torch.Generator | None) -> None:
+             tick: Callable[[], None], generator: torch.Generator | None, snapshots: list[dict[str, Tensor]]) -> None:
+        """A run from the ψ in ``policy``; with ``keep="validated"`` it appends snapshots of ψ to ``snapshots``."""
         raise NotImplementedError
 
     def _run_batched(self, batch: _RestartBatch, objective: Callable[[], Tensor], tick: Callable[[], None]) -> None:
@@ -138,12 +143,12 @@ class _RestartingSearch:
         self, policy: nn.Module, generator: torch.Generator | None = None
     ) -> list[dict[str, Tensor]]:
         """Every restart's starting ψ: the current one, then perturbations drawn in the sequential search's order."""
-        start = {k: v.detach().clone() for k, v in policy.state_dict().items()}
+        start = _state(policy)
         states = [start]
         for _ in range(1, self.restarts):
             policy.load_state_dict(start)
             _perturb(policy, self.perturbation, generator)
-            states.append({k: v.detach().clone() for k, v in policy.state_dict().items()})
+            states.append(_state(policy))
         policy.load_state_dict(start)
         return states
 
@@ -163,7 +168,7 @@ class _RestartingSearch:
         """
         if self.batched:
             return self._search_batched(policy, objective, generator, tick)
-        start = {k: v.detach().clone() for k, v in policy.state_dict().items()}
+        start = _state(policy)
         best = _BestSeen(policy)
         run_values, run_evaluations = [], []
         for run in range(self.restarts):
@@ -179,15 +184,15 @@ class _RestartingSearch:
                 return value
 
             params = [p for p in policy.parameters() if p.requires_grad]
-            self.snapshots = [_state(policy)] if self.keep == "validated" else []  # the run's start is one
+            snapshots = [_state(policy)] if self.keep == "validated" else []  # the run's start is one
             candidates: list[dict[str, Tensor]] = []
             try:
-                self._run(policy, params, tracked, tick, generator)
-                candidates = [*self.snapshots, _state(policy)]
+                self._run(policy, params, tracked, tick, generator, snapshots)
+                candidates = [*snapshots, _state(policy)]
             except INVALID_PSI_ERRORS as err:
                 _count_failure(err)
                 health.count(health.SEARCH_STOPPED)
-                candidates = self.snapshots  # taken before the invalid ψ; without any, the best ψ evaluated
+                candidates = snapshots  # taken before the invalid ψ; without any, the best ψ evaluated
                 log.warning("policy search run %d stopped at a numerically invalid ψ (%s); it keeps the best ψ %s",
                             run, err, "of its snapshots" if candidates else "it evaluated")
             if self.keep != "best" and candidates:  # the final ψ (and the snapshots), valued afresh (no dropout now)
@@ -231,11 +236,6 @@ class _RestartingSearch:
         policy.load_state_dict({**states[0], **batch.best_psi[best]})
         return SearchResult(value=batch.best_value[best], evaluations=sum(batch.calls), run_values=batch.best_value,
                             rollouts=batch.rollouts, run_evaluations=batch.calls)
-
-
-def _state(policy: nn.Module) -> dict[str, Tensor]:
-    """A copy of ``policy``'s ψ."""
-    return {k: v.detach().clone() for k, v in policy.state_dict().items()}
 
 
 def _valued_afresh(
@@ -308,9 +308,13 @@ class _RestartBatch:
                        for name, value in psi.items()}
         return self.params
 
+    def trainable_named(self) -> dict[str, nn.Parameter]:
+        """The stacked parameters an optimiser moves (those of ψ that require gradients), by name."""
+        return {name: p for name, p in self.params.items() if p.requires_grad}
+
     def trainable(self) -> list[nn.Parameter]:
-        """The stacked parameters an optimiser moves (those of ψ that require gradients)."""
-        return [p for p in self.params.values() if p.requires_grad]
+        """The stacked parameters an optimiser moves, in ``named_parameters`` order."""
+        return list(self.trainable_named().values())
 
     def point(self, position: int) -> Tensor:
         """The trainable ψ of the restart at ``position``, flattened: `n`."""
@@ -494,7 +498,7 @@ class LBFGSSearch(_RestartingSearch):
         self.max_iter = max_iter
 
     def _run(self, policy: nn.Module, params: list[nn.Parameter], objective: Callable[[], Tensor],
-             tick: Callable[[], None], generator: torch.Generator | None) -> None:
+             tick: Callable[[], None], generator: torch.Generator | None, snapshots: list[dict[str, Tensor]]) -> None:
         options = LBFGSOptions(max_iter=self.max_iter, max_eval=self.max_iter)  # torch.optim.LBFGS's settings
         run = lbfgs(parameters_to_vector(params).detach(), options)
         point, answer = next(run), None
@@ -632,7 +636,7 @@ class AdamSearch(_RestartingSearch):
             self.batched = False  # one restart: the sequential run is the batched one
 
     def _run(self, policy: nn.Module, params: list[nn.Parameter], objective: Callable[[], Tensor],
-             tick: Callable[[], None], generator: torch.Generator | None) -> None:
+             tick: Callable[[], None], generator: torch.Generator | None, snapshots: list[dict[str, Tensor]]) -> None:
         lr, dropout = self.lr, self.dropout
         if dropout > 0:
             policy.set_dropout(dropout, _child_generator(generator))
@@ -648,7 +652,7 @@ class AdamSearch(_RestartingSearch):
                 optimiser.step()
                 tick()
                 if self.keep == "validated" and (step + 1) % every == 0 and step + 1 < self.steps:
-                    self.snapshots.append(_state(policy))
+                    snapshots.append(_state(policy))
                 if self.plateau is None:
                     continue
                 if monitor is None:
@@ -678,8 +682,7 @@ class AdamSearch(_RestartingSearch):
         return [{"params": [p], "lr": lr * self.lr_scales.get(_short(name), 1.0)} for name, p in named.items()]
 
     def _run_batched(self, batch: _RestartBatch, objective: Callable[[], Tensor], tick: Callable[[], None]) -> None:
-        named = {name: p for name, p in batch.params.items() if p.requires_grad}
-        optimiser = torch.optim.Adam(self.param_groups(named, self.lr), lr=self.lr)
+        optimiser = torch.optim.Adam(self.param_groups(batch.trainable_named(), self.lr), lr=self.lr)
         step = 0
         while batch.active and step < self.steps:
             optimiser.zero_grad()
@@ -690,8 +693,7 @@ class AdamSearch(_RestartingSearch):
             except _DropRestarts as drop:
                 moved = dict(zip(batch.trainable(), [optimiser.state[p] for p in batch.trainable()], strict=True))
                 kept = batch.drop(drop.positions)
-                named = {name: p for name, p in batch.params.items() if p.requires_grad}
-                optimiser = torch.optim.Adam(self.param_groups(named, self.lr), lr=self.lr)
+                optimiser = torch.optim.Adam(self.param_groups(batch.trainable_named(), self.lr), lr=self.lr)
                 for old, new in zip(moved, batch.trainable(), strict=True):
                     optimiser.state[new] = {
                         key: value[kept] if key != "step" and value.dim() > 0 else value

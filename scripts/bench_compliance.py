@@ -102,6 +102,15 @@ EXPLORE_ARM_HELP = {  # how each arm's table describes it
 }
 
 
+def arm_overrides(approach: str, gate: float | None) -> dict[str, list[str]]:
+    """Each arm's Hydra overrides (the source's path apart): PILCO, θ-only transfer, QTL-PILCO and their gated forms."""
+    transfer = [f"approach={approach}", "transfer.policy=false", "transfer.compliance=kernel"]
+    qtl = [f"approach={approach}", "transfer.compliance=kernel"]
+    gate_overrides = [] if gate is None else [f"transfer.min_compliance={gate}"]
+    return {"pilco": [], "transfer": transfer, "gated": [*transfer, *gate_overrides], "qtl": qtl,
+            "gated_qtl": [*qtl, *gate_overrides]}
+
+
 def target_config(family: Family, value: float, seed: int, extra: list[str] | None = None):
     """The composed ``train`` config of a target run (what ``qtl-train`` would run)."""
     with initialize_config_module(config_module="qtl.configs", version_base="1.3"):
@@ -224,15 +233,13 @@ def learn(family: Family, args: argparse.Namespace) -> tuple[dict, str]:
     """PILCO, θ-only transfer and gated transfer on every target and seed; their table, markdown."""
     root = args.runs_dir / family.task
     values = [*family.near, *family.far]
-    transfer = [f"approach={args.approach}", "transfer.policy=false", "transfer.compliance=kernel"]
-    arm_overrides = {"pilco": [], "transfer": transfer, "gated": [*transfer, f"transfer.min_compliance={args.gate}"],
-                     "qtl": [f"approach={args.approach}", "transfer.compliance=kernel"]}
+    overrides_of = arm_overrides(args.approach, args.gate)
 
     def run(job: tuple[str, float, int]) -> None:
         arm, value, seed = job
         source = [f"transfer.source={family.sources / f'seed_{seed}'}"] if arm != "pilco" else []
         overrides = [f"task={family.task}", f"task.env.{family.axis}={value}", f"seed={seed}",
-                     f"episodes={args.episodes}", *arm_overrides[arm], *source, *args.overrides]
+                     f"episodes={args.episodes}", *overrides_of[arm], *source, *args.overrides]
         ensure_run(overrides, root / arm / f"{family.axis}{value:g}" / f"seed_{seed}", args.episodes + 1)
 
     # PILCO and transfer first (seed-major, so that partial results pair up), then the gated runs, far targets first.
@@ -311,11 +318,8 @@ def explore(family: Family, args: argparse.Namespace) -> tuple[dict, str]:
     Does θ_s hurt there, and does the gate catch it? Its table, markdown.
     """
     root = args.runs_dir / family.task / "explore"
-    transfer = [f"approach={args.approach}", "transfer.policy=false", "transfer.compliance=kernel"]
-    qtl = [f"approach={args.approach}", "transfer.compliance=kernel"]
-    gate = [] if args.gate is None else [f"transfer.min_compliance={args.gate}"]
-    gated = [*transfer, *gate] if gate else []
-    arms = args.explore_arms or [*EXPLORE_ARMS, *(["gated"] if gated else [])]
+    overrides_of = arm_overrides(args.approach, args.gate)
+    arms = args.explore_arms or [*EXPLORE_ARMS, *(["gated"] if args.gate is not None else [])]
     env = {target: env_override(family, *target) for target in args.explore}  # composed here, not in the threads
 
     def run_dir(arm: str, key: str, value: float, seed: int) -> Path:
@@ -323,11 +327,9 @@ def explore(family: Family, args: argparse.Namespace) -> tuple[dict, str]:
 
     def run(job: tuple[str, tuple[str, float], int]) -> None:
         arm, (key, value), seed = job
-        source = [f"transfer.source={family.sources / f'seed_{seed}'}"]
-        extra = {"pilco": [], "transfer": [*transfer, *source], "gated": [*gated, *source], "qtl": [*qtl, *source],
-                 "gated_qtl": [*qtl, *gate, *source]}[arm]
+        source = [f"transfer.source={family.sources / f'seed_{seed}'}"] if arm != "pilco" else []
         overrides = [f"task={family.task}", env[key, value], f"seed={seed}",
-                     f"episodes={args.episodes}", *extra, *args.overrides]
+                     f"episodes={args.episodes}", *overrides_of[arm], *source, *args.overrides]
         ensure_run(overrides, run_dir(arm, key, value, seed), args.episodes + 1)
 
     jobs = [(arm, target, seed) for seed in args.seeds for target in args.explore for arm in arms]
