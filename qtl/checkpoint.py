@@ -63,6 +63,24 @@ def save_checkpoint(run_dir: str | os.PathLike, episode: int, payload: dict[str,
     return path
 
 
+def prune_checkpoints(run_dir: str | os.PathLike, keep: int) -> list[Path]:
+    """Delete all but the newest ``keep`` checkpoints of a run (``keep`` = 0: delete none); the paths deleted."""
+    if keep < 0:
+        raise ValueError(f"keep={keep}: give the number of newest checkpoints to keep (0: all)")
+    found = sorted(p for p in (Path(run_dir) / CHECKPOINT_DIR).glob("episode_*.pt") if _NAME.match(p.name))
+    doomed = found[:-keep] if keep else []
+    for path in doomed:
+        path.unlink()
+    return doomed
+
+
+def episodes_done(run_dir: str | os.PathLike) -> int:
+    """How many episodes a run directory has checkpointed: its newest checkpoint's episode + 1 (0 for none)."""
+    names = (p.name for p in (Path(run_dir) / CHECKPOINT_DIR).glob("episode_*.pt"))
+    found = [int(m.group(1)) for name in names if (m := _NAME.match(name))]
+    return max(found) + 1 if found else 0
+
+
 def latest_checkpoint(run_dir: str | os.PathLike) -> Path:
     """The newest checkpoint of a run directory; a clear error when there is none."""
     run_dir = Path(run_dir)

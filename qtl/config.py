@@ -555,6 +555,9 @@ class TrainConfig:
     figure_every: int = field(
         default=3, metadata=doc("predicted-vs-real figure every this many learned episodes (0: never)"),
     )
+    keep_checkpoints: int = field(
+        default=0, metadata=doc("keep only the newest this many episode checkpoints (0: all; resume needs 1)"),
+    )
     model: ModelConfig = field(default=MISSING, metadata=doc("the dynamics GP and its fit (group model=...)"))
     transfer: TransferConfig = field(
         default_factory=TransferConfig, metadata=doc("transfer from a source run (Section 4)"),
@@ -575,6 +578,8 @@ def check_budget(cfg: DictConfig) -> None:
         )
     if cfg.episodes < 0:
         raise UserError(f"episodes={cfg.episodes}: the learned episodes after the initial ones must be >= 0")
+    if cfg.keep_checkpoints < 0:
+        raise UserError(f"keep_checkpoints={cfg.keep_checkpoints}: keep the newest N >= 1 checkpoints, or 0 for all")
 
 
 def show_progress(setting: bool | None) -> bool:

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import yaml
 
-from qtl.checkpoint import CHECKPOINT_DIR
+from qtl.checkpoint import episodes_done
 from qtl.errors import RunMismatch
 
 # Overrides that do not change what a run computes (``episodes`` only says how far it goes: runs
@@ -35,10 +35,10 @@ def ensure_run(overrides: list[str], run_dir: Path, episodes: int, *, threads: i
         found = effective(yaml.safe_load(made_with.read_text()))
         if found != effective(overrides):
             raise RunMismatch(f"{run_dir} was made with other overrides:\n  {found}\nnot\n  {effective(overrides)}")
-    checkpoints = sorted((run_dir / CHECKPOINT_DIR).glob("episode_*.pt")) if run_dir.exists() else []
-    if len(checkpoints) >= episodes:
+    made = episodes_done(run_dir)
+    if made >= episodes:
         return 0.0
-    if checkpoints:
+    if made:
         extend = [o for o in overrides if o.startswith("episodes=")]
         # A resumed run logs into its own directory (qtl-train's default for resume=).
         args = [f"resume={run_dir}", *extend, "progress=false", f"threads={threads}"]

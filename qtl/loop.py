@@ -20,7 +20,14 @@ from tqdm.contrib.logging import logging_redirect_tqdm
 
 from qtl import health
 from qtl.build import build, transfer_plan
-from qtl.checkpoint import latest_checkpoint, load_checkpoint, refuse_existing_run, save_checkpoint, set_rng_state
+from qtl.checkpoint import (
+    latest_checkpoint,
+    load_checkpoint,
+    prune_checkpoints,
+    refuse_existing_run,
+    save_checkpoint,
+    set_rng_state,
+)
 from qtl.data import TransitionDataset
 from qtl.episodes import one_step_smse, prediction_figure, random_actor, run_episode
 from qtl.gaussian import Gaussian
@@ -200,6 +207,7 @@ def run(cfg: DictConfig, output_dir: Path, *, resume: bool = False) -> RunResult
                     "timings": recorder.timings,
                     "health": recorder.health,
                 })
+                prune_checkpoints(output_dir, cfg.keep_checkpoints)
                 log.info(
                     "episode %d (%s): return %.2f, predicted %.2f, success %s, fit %.1f s, policy search %.1f s",
                     episode, row["kind"], row["return"], row["predicted_return"], bool(row["success"]), fit_s,

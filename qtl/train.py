@@ -34,7 +34,8 @@ log = logging.getLogger(__name__)
 
 # What a resumed run may change of the interrupted run's configuration.
 # Top-level keys: ``kernels`` covers ``kernels.backend`` (the engine, not the maths: round-off only).
-RESUME_OVERRIDABLE = frozenset({"episodes", "progress", "figure_every", "threads", "device", "kernels", "resume"})
+RESUME_OVERRIDABLE = frozenset({"episodes", "progress", "figure_every", "threads", "device", "kernels",
+                                "keep_checkpoints", "resume"})
 HYDRA_DIR = ".hydra"  # the run's record of its configuration, as Hydra lays it out
 FULL_ERROR = "HYDRA_FULL_ERROR"  # Hydra's switch for full tracebacks; qtl-train honours it too
 

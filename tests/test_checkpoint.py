@@ -15,8 +15,10 @@ from qtl.checkpoint import (
     CHECKPOINT_FORMAT,
     LOCK_FILE,
     checkpoint_path,
+    episodes_done,
     latest_checkpoint,
     load_checkpoint,
+    prune_checkpoints,
     rng_state,
     run_lock,
     save_checkpoint,
@@ -65,6 +67,21 @@ def test_latest_checkpoint_is_the_highest_episode_and_ignores_other_files(tmp_pa
     (tmp_path / CHECKPOINT_DIR / "episode_0099.pt.tmp").write_bytes(b"half")  # a crash mid-write
     (tmp_path / CHECKPOINT_DIR / "episode_99.pt").write_bytes(b"not ours")
     assert latest_checkpoint(tmp_path).name == "episode_0010.pt"
+
+
+def test_prune_keeps_the_newest_and_episodes_done_counts_from_the_newest(tmp_path):
+    assert episodes_done(tmp_path / "none") == 0
+    for episode in (0, 1, 2, 3):
+        save_checkpoint(tmp_path, episode, {})
+    (tmp_path / CHECKPOINT_DIR / "episode_99.pt").write_bytes(b"not ours")
+    assert prune_checkpoints(tmp_path, 0) == []  # 0: keep all
+    assert [p.name for p in prune_checkpoints(tmp_path, 2)] == ["episode_0000.pt", "episode_0001.pt"]
+    assert sorted(p.name for p in (tmp_path / CHECKPOINT_DIR).iterdir()) == [
+        "episode_0002.pt", "episode_0003.pt", "episode_99.pt"]  # a foreign file is left alone
+    assert episodes_done(tmp_path) == 4  # four episodes made, two checkpoints left
+    assert prune_checkpoints(tmp_path, 5) == []
+    with pytest.raises(ValueError, match="keep=-1"):
+        prune_checkpoints(tmp_path, -1)
 
 
 def test_missing_empty_or_foreign_runs_are_named(tmp_path):

@@ -86,6 +86,15 @@ def test_resume_continues_exactly_as_an_uninterrupted_run(tmp_path, model):
         torch.testing.assert_close(a["policy"][name], b["policy"][name], rtol=0, atol=0)
 
 
+def test_a_run_keeping_one_checkpoint_resumes_as_a_run_keeping_all(tmp_path):
+    run(tiny_config("episodes=2"), tmp_path / "all")
+    run(tiny_config("episodes=1", "keep_checkpoints=1"), tmp_path / "one")
+    assert [p.name for p in (tmp_path / "one" / "checkpoints").iterdir()] == ["episode_0001.pt"]
+    run(tiny_config("episodes=2", "keep_checkpoints=1"), tmp_path / "one", resume=True)
+    assert [p.name for p in (tmp_path / "one" / "checkpoints").iterdir()] == ["episode_0002.pt"]
+    assert (tmp_path / "all" / "metrics.csv").read_text() == (tmp_path / "one" / "metrics.csv").read_text()
+
+
 def test_resume_from_missing_or_corrupt_directory_is_named(tmp_path):
     with pytest.raises(CheckpointError, match="does not exist"):
         run(tiny_config("episodes=1"), tmp_path / "absent", resume=True)

@@ -19,9 +19,9 @@ from tests.helpers import tiny_config
 def test_resume_may_change_how_a_run_runs_but_not_what_it_learns(tmp_path):
     run(tiny_config("episodes=0"), tmp_path)
     cfg = resume_config(tmp_path, [f"resume={tmp_path}", "episodes=3", "threads=2", "device=cuda:0",
-                                   "kernels.backend=torch"])
-    assert (cfg.episodes, cfg.threads, cfg.device, cfg.kernels.backend, cfg.resume) == (
-        3, 2, "cuda:0", "torch", str(tmp_path))
+                                   "kernels.backend=torch", "keep_checkpoints=1"])
+    assert (cfg.episodes, cfg.threads, cfg.device, cfg.kernels.backend, cfg.keep_checkpoints, cfg.resume) == (
+        3, 2, "cuda:0", "torch", 1, str(tmp_path))
     with pytest.raises(CheckpointError, match="cannot change 'seed'"):
         resume_config(tmp_path, ["seed=4"])
     with pytest.raises(CheckpointError, match="already holds a run's checkpoints"):
@@ -61,7 +61,8 @@ def test_auto_resume_ignores_the_transfer_settings_of_a_run_without_a_source(tmp
 @pytest.mark.parametrize(
     ("overrides", "message"),
     [(["episodes=-1"], "episodes=-1: the learned episodes"), (["random_episodes=0"], "random_episodes must be >= 1"),
-     (["random_episodes=0", "transfer.policy=true"], "random_episodes must be >= 1")],
+     (["random_episodes=0", "transfer.policy=true"], "random_episodes must be >= 1"),
+     (["keep_checkpoints=-1"], "keep_checkpoints=-1: keep the newest")],
 )
 def test_budgets_that_cannot_learn_are_refused(overrides, message):
     with pytest.raises(UserError, match=message):
