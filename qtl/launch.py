@@ -13,8 +13,9 @@ from qtl.checkpoint import episodes_done
 from qtl.errors import RunMismatch
 
 # Overrides that do not change what a run computes (``episodes`` only says how far it goes: runs
-# are causal, so a run extended by resuming equals one made longer from the start).
-NEUTRAL_OVERRIDES = ("hydra.run.dir=", "progress=", "threads=", "episodes=")
+# are causal, so a run extended by resuming equals one made longer from the start; ``resume`` and
+# ``keep_checkpoints`` say how it is continued and stored, not what it learns).
+NEUTRAL_OVERRIDES = ("hydra.run.dir=", "progress=", "threads=", "episodes=", "resume=", "keep_checkpoints=")
 
 
 
