@@ -63,11 +63,16 @@ def save_checkpoint(run_dir: str | os.PathLike, episode: int, payload: dict[str,
     return path
 
 
+def _checkpoints(run_dir: str | os.PathLike) -> list[Path]:
+    """A run's episode checkpoints, oldest first (other files in the directory left out)."""
+    return sorted(p for p in (Path(run_dir) / CHECKPOINT_DIR).glob("episode_*.pt") if _NAME.match(p.name))
+
+
 def prune_checkpoints(run_dir: str | os.PathLike, keep: int) -> list[Path]:
     """Delete all but the newest ``keep`` checkpoints of a run (``keep`` = 0: delete none); the paths deleted."""
     if keep < 0:
         raise ValueError(f"keep={keep}: give the number of newest checkpoints to keep (0: all)")
-    found = sorted(p for p in (Path(run_dir) / CHECKPOINT_DIR).glob("episode_*.pt") if _NAME.match(p.name))
+    found = _checkpoints(run_dir)
     doomed = found[:-keep] if keep else []
     for path in doomed:
         path.unlink()
@@ -76,9 +81,8 @@ def prune_checkpoints(run_dir: str | os.PathLike, keep: int) -> list[Path]:
 
 def episodes_done(run_dir: str | os.PathLike) -> int:
     """How many episodes a run directory has checkpointed: its newest checkpoint's episode + 1 (0 for none)."""
-    names = (p.name for p in (Path(run_dir) / CHECKPOINT_DIR).glob("episode_*.pt"))
-    found = [int(m.group(1)) for name in names if (m := _NAME.match(name))]
-    return max(found) + 1 if found else 0
+    found = _checkpoints(run_dir)
+    return int(_NAME.match(found[-1].name).group(1)) + 1 if found else 0
 
 
 def latest_checkpoint(run_dir: str | os.PathLike) -> Path:
@@ -86,7 +90,7 @@ def latest_checkpoint(run_dir: str | os.PathLike) -> Path:
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         raise CheckpointError(f"run directory {str(run_dir)!r} does not exist")
-    found = sorted(p for p in (run_dir / CHECKPOINT_DIR).glob("episode_*.pt") if _NAME.match(p.name))
+    found = _checkpoints(run_dir)
     if not found:
         raise CheckpointError(f"{str(run_dir)!r} holds no checkpoints (expected {CHECKPOINT_DIR}/episode_NNNN.pt)")
     return found[-1]
