@@ -20,8 +20,8 @@ NEUTRAL_OVERRIDES = ("hydra.run.dir=", "progress=", "threads=", "episodes=", "re
 
 
 def effective(overrides: list[str]) -> list[str]:
-    """The overrides that change a run's results, sorted."""
-    return sorted(o for o in overrides if not o.startswith(NEUTRAL_OVERRIDES))
+    """The overrides that change a run's results, sorted (a stray ``--``, as older runs recorded it, dropped)."""
+    return sorted(o for o in overrides if o != "--" and not o.startswith(NEUTRAL_OVERRIDES))
 
 
 def ensure_run(overrides: list[str], run_dir: Path, episodes: int, *, threads: int = 1) -> float:

@@ -70,7 +70,7 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=1, help="torch threads per run")
     parser.add_argument("--tag", default="", help="names the result files and table (e.g. 'particles')")
     parser.add_argument("--runs-dir", type=Path, default=benchlib.ROOT / "runs" / "bench_cartpole")
-    args, overrides = parser.parse_known_args()
+    args, overrides = benchlib.parse_with_overrides(parser)
     if args.episodes is None:
         args.episodes = args.within - 1
 

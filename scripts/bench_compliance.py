@@ -436,7 +436,7 @@ def main() -> None:
     parser.add_argument("--explore-arms", nargs="+", choices=EXPLORE_CHOICES,
                         help="the runs per --explore target (default: pilco transfer, and gated with --gate); qtl: "
                              "θ_s and ψ_s, gated_qtl: the same with the gate")
-    args, args.overrides = parser.parse_known_args()
+    args, args.overrides = benchlib.parse_with_overrides(parser)
     try:
         args.explore = parse_targets(args.explore)
     except ValueError as err:

@@ -141,7 +141,7 @@ def main() -> None:
     parser.add_argument("--jobs", type=int, default=2, help="runs in parallel")
     parser.add_argument("--threads", type=int, default=1, help="torch threads per run")
     parser.add_argument("--runs-dir", type=Path, default=benchlib.ROOT / "runs" / "bench_envs")
-    args, overrides = parser.parse_known_args()
+    args, overrides = benchlib.parse_with_overrides(parser)
     if args.episodes is None:
         args.episodes = args.within - 1
     if "inverted_pendulum" in args.envs and importlib.util.find_spec("mujoco") is None:

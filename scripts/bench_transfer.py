@@ -85,7 +85,7 @@ def main() -> None:
     parser.add_argument("--source-overrides", nargs="*", default=[],
                         help="Hydra overrides of the source runs, as bench_cartpole made them (e.g. recipe=mc_pilco)")
     parser.add_argument("--tag", default="", help="names the result files, section and runs directory (e.g. particles)")
-    args, overrides = parser.parse_known_args()
+    args, overrides = benchlib.parse_with_overrides(parser)
     if args.runs_dir is None:
         args.runs_dir = benchlib.ROOT / "runs" / ("bench_transfer" + (f"-{args.tag}" if args.tag else ""))
     approaches = [slug for slug in APPROACHES if slug in args.approaches or "all" in args.approaches]

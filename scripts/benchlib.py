@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import datetime as dt
 import json
 import os
@@ -17,6 +18,20 @@ import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 BENCHMARKS_MD = ROOT / "docs" / "benchmarks.md"
+
+
+def parse_with_overrides(parser: argparse.ArgumentParser) -> tuple[argparse.Namespace, list[str]]:
+    """The script's options and the Hydra overrides after them, a ``--`` separator dropped.
+
+    A leftover ``-…`` token is a mistyped option (Hydra overrides are ``key=value``): refused in one line
+    here, before any run starts, instead of reaching the runs' command lines and their recorded overrides.
+    """
+    args, rest = parser.parse_known_args()
+    overrides = [token for token in rest if token != "--"]
+    unknown = [token for token in overrides if token.startswith("-")]
+    if unknown:
+        parser.error(f"unrecognised option(s) {' '.join(unknown)}: see --help (Hydra overrides are key=value)")
+    return args, overrides
 
 
 def machine() -> dict[str, str | int]:

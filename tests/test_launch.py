@@ -11,3 +11,4 @@ def test_only_overrides_that_change_what_a_run_learns_count():
     assert effective(made) == ["recipe=mc_pilco", "seed=0"]
     assert effective(["seed=1", "resume=auto"]) != effective(["seed=0"])
     assert effective(["task.horizon=100"]) != effective([])
+    assert effective(["seed=0", "--", "recipe=mc_pilco"]) == effective(["seed=0", "recipe=mc_pilco"])

@@ -38,3 +38,31 @@ def test_mean_std_and_first_successes() -> None:
     assert benchlib.mean_std([]) == "—" and benchlib.mean_std([2.0]) == "2.0"
     assert benchlib.mean_std([1.0, 3.0], 2) == "2.00 ± 1.41"
     assert benchlib.first_successes([{"first_success": 3}, {"first_success": None}]) == "3 —"
+
+
+def _parser():
+    import argparse
+
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0])
+    parser.add_argument("--tag", default="")
+    return parser
+
+
+def test_parse_with_overrides_drops_the_separator(monkeypatch) -> None:
+    monkeypatch.setattr(sys, "argv", ["bench", "--seeds", "0", "1", "--", "recipe=mc_pilco", "+task.env.dt=0.05"])
+    args, overrides = benchlib.parse_with_overrides(_parser())
+    assert args.seeds == [0, 1] and overrides == ["recipe=mc_pilco", "+task.env.dt=0.05"]
+    monkeypatch.setattr(sys, "argv", ["bench", "--tag", "x", "recipe=mc_pilco"])
+    assert benchlib.parse_with_overrides(_parser())[1] == ["recipe=mc_pilco"]
+
+
+def test_parse_with_overrides_refuses_a_mistyped_option(monkeypatch, capsys) -> None:
+    monkeypatch.setattr(sys, "argv", ["bench", "--sedes", "3", "recipe=mc_pilco"])
+    try:
+        benchlib.parse_with_overrides(_parser())
+    except SystemExit as stop:
+        assert stop.code == 2
+    else:
+        raise AssertionError("a mistyped option was taken for an override")
+    assert "--sedes" in capsys.readouterr().err
