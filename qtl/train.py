@@ -132,7 +132,7 @@ def prepare(cfg: DictConfig) -> tuple[DictConfig, Path]:
         resumed = run_directory(cfg)
         cfg = resume_config(resumed, list(hydra_cfg.overrides.task))
         check_budget(cfg)
-        if resumed != output_dir:  # hydra.run.dir set elsewhere: the resumed run's log gets the episodes too
+        if resumed != output_dir.resolve():  # hydra.run.dir elsewhere (a link to it is the same place): log there too
             handler = logging.FileHandler(resumed / f"{hydra_cfg.job.name}.log")
             handler.setFormatter(logging.Formatter("[%(asctime)s][%(name)s][%(levelname)s] - %(message)s"))
             logging.getLogger().addHandler(handler)

@@ -86,6 +86,20 @@ def test_resume_continues_in_the_run_and_leaves_nothing_in_the_cwd(finished, tmp
     assert (run_dir / ".hydra" / "config.yaml").read_text() == config
 
 
+def test_resume_through_a_symlink_logs_each_line_once(finished, tmp_path):
+    # E.g. a worktree whose docs/experiments links to another checkout's: Hydra's output directory is the
+    # link, the resumed run the resolved path, and both are one train.log.
+    source, _ = finished
+    shutil.copytree(source, tmp_path / "run")
+    (tmp_path / "link").symlink_to(tmp_path / "run", target_is_directory=True)
+    before = (tmp_path / "run" / "train.log").read_text().count("\n")
+    resumed = qtl("resume=link", "episodes=2", "threads=1", cwd=tmp_path)
+    assert resumed.returncode == 0, resumed.stderr
+    added = (tmp_path / "run" / "train.log").read_text().splitlines()[before:]
+    assert any("episode 2" in line for line in added)
+    assert len(added) == len(set(added)), "\n".join(added)
+
+
 def test_a_run_in_use_by_another_process_is_refused_and_left_as_it_is(finished, tmp_path):
     # E.g. a sweep restarted while the old sweep's workers still run: the second process must not write there too.
     source, _ = finished
