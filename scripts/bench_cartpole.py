@@ -20,7 +20,6 @@ import argparse
 import csv
 import json
 import sys
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -76,9 +75,8 @@ def main() -> None:
 
     name = "cartpole" + (f"-{args.tag}" if args.tag else "")
     runs_dir = args.runs_dir / name
-    with ThreadPoolExecutor(max_workers=args.jobs) as pool:
-        results = list(pool.map(lambda s: run_seed(s, args.episodes, runs_dir / f"seed_{s}", overrides, args.threads),
-                                args.seeds))
+    results = benchlib.run_all(lambda s: run_seed(s, args.episodes, runs_dir / f"seed_{s}", overrides, args.threads),
+                               args.seeds, args.jobs)
     solved = [r for r in results if r["first_success"] is not None and r["first_success"] < args.within]
     passed = len(solved) >= REQUIRED_SEEDS if len(results) >= JUDGED_SEEDS else None
 

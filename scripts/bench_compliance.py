@@ -42,7 +42,6 @@ import itertools
 import json
 import statistics
 import sys
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -248,8 +247,7 @@ def learn(family: Family, args: argparse.Namespace) -> tuple[dict, str]:
     gated = [*family.far, *(family.near if args.gate_on == "all" else ())]
     if "gated" in args.arms:
         jobs += [("gated", value, seed) for value in gated for seed in args.seeds]
-    with ThreadPoolExecutor(max_workers=args.jobs) as pool:
-        list(pool.map(run, jobs))
+    benchlib.run_all(run, jobs, args.jobs)
 
     link_experiment(root, family.sources, args.arms)
     figure, *others = plot_learning_curves(discover(root), args.figures / f"compliance_{family.task}_learning_curves")
@@ -333,8 +331,7 @@ def explore(family: Family, args: argparse.Namespace) -> tuple[dict, str]:
         ensure_run(overrides, run_dir(arm, key, value, seed), args.episodes + 1)
 
     jobs = [(arm, target, seed) for seed in args.seeds for target in args.explore for arm in arms]
-    with ThreadPoolExecutor(max_workers=args.jobs) as pool:
-        list(pool.map(run, jobs))
+    benchlib.run_all(run, jobs, args.jobs)
     link_experiment(root, family.sources, arms)
     name = f"compliance_{family.task}_explore_learning_curves"
     args.figures.mkdir(parents=True, exist_ok=True)

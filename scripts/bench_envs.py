@@ -22,7 +22,6 @@ import argparse
 import importlib.util
 import json
 import sys
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -156,8 +155,7 @@ def main() -> None:
         return {"env": name, **result, **describe_run(run_dir, budget)}
 
     jobs = [(name, seed) for name in args.envs for seed in args.seeds]
-    with ThreadPoolExecutor(max_workers=args.jobs) as pool:
-        done = list(pool.map(run, jobs))
+    done = benchlib.run_all(run, jobs, args.jobs)
 
     machine, fresh = benchlib.machine(), {}
     for name in args.envs:

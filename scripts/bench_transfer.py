@@ -32,7 +32,6 @@ import csv
 import json
 import statistics
 import sys
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -109,10 +108,9 @@ def main() -> None:
         return slug, seed, ensure_run(run, run_dir, args.episodes + 1)
 
     jobs = [(slug, seed) for seed in args.seeds for slug in approaches]  # seed-major: partial results pair up
-    with ThreadPoolExecutor(max_workers=args.jobs) as pool:
-        if any(slug != DEFAULT_APPROACH for slug in approaches):
-            list(pool.map(make_source, args.seeds))  # sources first: every QTL run of a seed reads its own
-        walls = {(slug, seed): wall for slug, seed, wall in pool.map(target, jobs)}
+    if any(slug != DEFAULT_APPROACH for slug in approaches):
+        benchlib.run_all(make_source, args.seeds, args.jobs)  # sources first: every QTL run of a seed reads its own
+    walls = {(slug, seed): wall for slug, seed, wall in benchlib.run_all(target, jobs, args.jobs)}
 
     link_experiment(args.runs_dir, args.sources)
     budget = args.episodes + 1

@@ -12,7 +12,10 @@ import resource
 import statistics
 import subprocess
 import sys
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+from typing import TypeVar
 
 import torch
 
@@ -32,6 +35,26 @@ def parse_with_overrides(parser: argparse.ArgumentParser) -> tuple[argparse.Name
     if unknown:
         parser.error(f"unrecognised option(s) {' '.join(unknown)}: see --help (Hydra overrides are key=value)")
     return args, overrides
+
+
+T = TypeVar("T")
+R = TypeVar("R")
+
+
+def run_all(fn: Callable[[T], R], items: Sequence[T], jobs: int) -> list[R]:
+    """``fn`` over ``items``, ``jobs`` at a time, in order; every item runs even when another fails.
+
+    (``Executor.map`` cancels the items not yet started at the first failure it hands back, so one failed
+    run would silently drop the rest of a sweep.) The failures, if any, are then raised as one error.
+    """
+    with ThreadPoolExecutor(max_workers=jobs) as pool:
+        futures = [pool.submit(fn, item) for item in items]
+    failed = [(item, future.exception()) for item, future in zip(items, futures, strict=True)
+              if future.exception() is not None]
+    if failed:
+        lines = "\n".join(f"  {item!r}: {str(err).strip()}" for item, err in failed)
+        raise RuntimeError(f"{len(failed)} of {len(items)} runs failed (the others finished):\n{lines}")
+    return [future.result() for future in futures]
 
 
 def machine() -> dict[str, str | int]:

@@ -66,3 +66,23 @@ def test_parse_with_overrides_refuses_a_mistyped_option(monkeypatch, capsys) -> 
     else:
         raise AssertionError("a mistyped option was taken for an override")
     assert "--sedes" in capsys.readouterr().err
+
+
+def test_run_all_runs_every_item_when_one_fails() -> None:
+    ran: list[int] = []
+
+    def job(item: int) -> int:
+        ran.append(item)
+        if item == 1:
+            raise RuntimeError("run 1 failed")
+        return item * 10
+
+    assert benchlib.run_all(job, [0, 2, 3], jobs=2) == [0, 20, 30]  # in order
+    ran.clear()
+    try:
+        benchlib.run_all(job, [0, 1, 2, 3, 4], jobs=1)  # one worker: Executor.map would cancel 2, 3 and 4
+    except RuntimeError as err:
+        assert "1 of 5 runs failed" in str(err) and "run 1 failed" in str(err)
+    else:
+        raise AssertionError("a failed run was not reported")
+    assert sorted(ran) == [0, 1, 2, 3, 4]
