@@ -20,7 +20,7 @@ NEUTRAL_OVERRIDES = ("hydra.run.dir=", "progress=", "threads=", "episodes=", "re
 
 
 def effective(overrides: list[str]) -> list[str]:
-    """The overrides that change a run's results, sorted (a stray ``--``, as older runs recorded it, dropped)."""
+    """The overrides that change a run's results, sorted (a ``--`` separator, which Hydra never records, dropped)."""
     return sorted(o for o in overrides if o != "--" and not o.startswith(NEUTRAL_OVERRIDES))
 
 

@@ -49,8 +49,8 @@ def run_all(fn: Callable[[T], R], items: Sequence[T], jobs: int) -> list[R]:
     """
     with ThreadPoolExecutor(max_workers=jobs) as pool:
         futures = [pool.submit(fn, item) for item in items]
-    failed = [(item, future.exception()) for item, future in zip(items, futures, strict=True)
-              if future.exception() is not None]
+    errors = [(item, future.exception()) for item, future in zip(items, futures, strict=True)]
+    failed = [(item, err) for item, err in errors if err is not None]
     if failed:
         lines = "\n".join(f"  {item!r}: {str(err).strip()}" for item, err in failed)
         raise RuntimeError(f"{len(failed)} of {len(items)} runs failed (the others finished):\n{lines}")

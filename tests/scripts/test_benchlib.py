@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import subprocess
 import sys
 from pathlib import Path
@@ -40,9 +41,7 @@ def test_mean_std_and_first_successes() -> None:
     assert benchlib.first_successes([{"first_success": 3}, {"first_success": None}]) == "3 —"
 
 
-def _parser():
-    import argparse
-
+def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser()
     parser.add_argument("--seeds", type=int, nargs="+", default=[0])
     parser.add_argument("--tag", default="")
