@@ -88,10 +88,15 @@ def _warn_if_imprecise(data: dict[str, Tensor], dtype: torch.dtype) -> None:
     """Warn when ``dtype`` cannot resolve the GP's predictive variance down to its noise variance σ_ε²."""
     worst = float((variance_roundoff_bound(data, dtype) / data["noise_variance"]).max())
     if worst > 1.0:
+        snr = float((data["signal_variance"] / data["noise_variance"]).max())
+        if dtype == torch.float64:
+            advice = (f"float64 is the most precise dtype: the fit's noise is too small for its data (α/σ_ε up to "
+                      f"{snr ** 0.5:.3g}; the bound is a worst case, read the variances with care)")
+        else:
+            advice = "use dtype=float64"
         log.warning(
             "propagation in %s: the GP's latent variance may be off by up to %.3g × its noise variance "
             "(round-off bound ε n α⁴/σ_ε², signal-to-noise α²/σ_ε² up to %.3g at n = %d); predictive variances "
-            "and the rollouts built on them are unreliable: use dtype=float64",
-            str(dtype).removeprefix("torch."), worst,
-            float((data["signal_variance"] / data["noise_variance"]).max()), data["inputs"].shape[-2],
+            "and the rollouts built on them are unreliable: %s",
+            str(dtype).removeprefix("torch."), worst, snr, data["inputs"].shape[-2], advice,
         )

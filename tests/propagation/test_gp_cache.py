@@ -44,3 +44,15 @@ def test_low_precision_propagation_warns_when_variances_lose_their_digits(caplog
     with caplog.at_level(logging.WARNING, logger="qtl.propagation.gp_cache"):
         propagator(_cache(noise_variance), policy, quadratic_reward(2), dtype=dtype)
     assert any("use dtype=float64" in r.getMessage() for r in caplog.records) == warns
+
+
+@pytest.mark.parametrize("propagator", [MomentMatching, Particles])
+def test_float64_warning_does_not_advise_float64(caplog, propagator):
+    # ε n α⁴/σ² = 2.2e-16 · 100 / 1e-9 = 2.2e-5 > 1e-9: even float64 cannot resolve the variances.
+    policy = LinearPolicy(2, 1).to(torch.float64)
+    with caplog.at_level(logging.WARNING, logger="qtl.propagation.gp_cache"):
+        propagator(_cache(1e-9), policy, quadratic_reward(2), dtype=torch.float64)
+    messages = [r.getMessage() for r in caplog.records]
+    assert any("propagation in float64" in m for m in messages)
+    assert not any("use dtype=float64" in m for m in messages)
+    assert any("α/σ_ε up to 3.16e+04" in m for m in messages)
