@@ -196,7 +196,8 @@ def _with_search_cost(make_propagator: PropagatorFactory, task: Task, cfg: DictC
         raise UserError("propagation.search_cost scores the task's search_reward on drawn states, which has no "
                         "Gaussian expectation: set propagation.expected_reward=false or search_cost=widened")
     target, widths = task.search_cost
-    cost = AngleDistanceReward(task.state_dim, task.angle_dims, target.tolist(), widths.tolist())
+    cost = AngleDistanceReward(task.state_dim, task.angle_dims, target.tolist(), widths.tolist(),
+                               absolute_angles=task.search_cost_angles == "absolute")
     return functools.partial(make_propagator, search_cost="task", task_search_cost=cost)
 
 

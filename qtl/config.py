@@ -80,7 +80,12 @@ class SearchRewardConfig:
         default=MISSING, metadata=doc("target x* per raw state dimension (null: left out)"),
     )
     widths: list[Optional[float]] = field(  # noqa: UP045
-        default=MISSING, metadata=doc("width σ_d per dimension, angles as wrapped distances (null: left out)"),
+        default=MISSING, metadata=doc("width σ_d per dimension (null: left out)"),
+    )
+    angles: str = field(
+        default="wrapped",
+        metadata=doc("δ on angle dims: wrapped (θ − θ* in [−π, π), every turn free) or absolute (|θ| − θ* on the raw "
+                     "angle, MC-PILCO's: every extra turn costs)"),
     )
 
 

@@ -163,11 +163,14 @@ class AngleDistanceReward:
     (σ = ℓ/√2): unlike a saturating reward of (sin θ, cos θ) (Eq. 13), it grows linearly with the
     swing away from hanging (|θ| has a kink there), so a swing-up search gets a first-order signal.
     ``target`` and ``widths`` `D`; a width of inf leaves its dimension out. Per state only: it has no
-    Gaussian expectation (particle searches score drawn states).
+    Gaussian expectation (particle searches score drawn states). ``absolute_angles``: δ = |θ| − θ* on the
+    raw (unwrapped) angle instead, MC-PILCO's form as written, which scores each turn beyond the first as
+    far from the target (a wrapped δ makes a full turn-over free).
     """
 
     def __init__(
-        self, state_dim: int, angle_dims: Sequence[int], target: Sequence[float], widths: Sequence[float]
+        self, state_dim: int, angle_dims: Sequence[int], target: Sequence[float], widths: Sequence[float],
+        *, absolute_angles: bool = False,
     ) -> None:
         target_t = torch.as_tensor(target, dtype=torch.float64)
         widths_t = torch.as_tensor(widths, dtype=torch.float64)
@@ -187,6 +190,7 @@ class AngleDistanceReward:
         self.target = target_t[self.dims]
         self.inv_widths = widths_t[self.dims].reciprocal()
         self.is_angle = torch.tensor([int(d) in self.angle_dims for d in self.dims])
+        self.absolute_angles = bool(absolute_angles)
 
     @property
     def state_dim(self) -> int:
@@ -195,9 +199,13 @@ class AngleDistanceReward:
 
     def __call__(self, x: Tensor) -> Tensor:
         """Reward of raw states `... x D`: `...`."""
-        diff = x[..., self.dims] - self.target.to(x)
-        wrapped = torch.remainder(diff + math.pi, 2 * math.pi) - math.pi  # in [−π, π)
-        diff = torch.where(self.is_angle.to(x.device), wrapped, diff)
+        raw = x[..., self.dims]
+        diff = raw - self.target.to(x)
+        if self.absolute_angles:
+            angular = raw.abs() - self.target.to(x)  # every turn beyond the first counts
+        else:
+            angular = torch.remainder(diff + math.pi, 2 * math.pi) - math.pi  # in [−π, π)
+        diff = torch.where(self.is_angle.to(x.device), angular, diff)
         return torch.exp(-0.5 * (diff * self.inv_widths.to(x)).square().sum(-1))
 
     def expected(self, state: Gaussian) -> Tensor:

@@ -22,6 +22,7 @@ from qtl.gaussian import Gaussian
 
 # Floor on the std of a start distribution estimated from the episodes' initial states (``task.start.min_std``).
 DEFAULT_START_MIN_STD = 0.01
+SEARCH_COST_ANGLES = ("wrapped", "absolute")  # task.search_reward.angles: how δ is taken on angle dims
 
 
 class Kinematics(NamedTuple):
@@ -58,6 +59,7 @@ class Task:
     start_min_std: float = DEFAULT_START_MIN_STD  # `σ_0`'s floor when estimated
     reset_options: dict[str, Any] | None = None  # ``env.reset(seed=..., options=...)``; None: the env's default
     search_cost: tuple[np.ndarray, np.ndarray] | None = None  # (target, widths) `D` each, inf width: left out
+    search_cost_angles: str = "wrapped"  # δ on its angle dims: wrapped θ − θ*, or absolute |θ| − θ* (raw angle)
     kinematics: Kinematics | None = None  # positions, their velocities and T (particles' speed integration)
 
     @classmethod
@@ -131,6 +133,7 @@ class Task:
             start_min_std=start_min_std,
             reset_options=None if reset_options is None else dict(reset_options),
             search_cost=_search_cost(cfg.get("search_reward"), state_dim),
+            search_cost_angles=_search_cost_angles(cfg.get("search_reward")),
             kinematics=kinematics,
         )
 
@@ -394,6 +397,14 @@ def _search_cost(cfg: Mapping[str, Any] | None, state_dim: int) -> tuple[np.ndar
                         f"uses, and at least one: got target {target}, widths {widths}")
     return (np.array([float(t) if u else 0.0 for u, t in zip(used, target, strict=True)]),
             np.array([float(w) if u else math.inf for u, w in zip(used, widths, strict=True)]))
+
+
+def _search_cost_angles(cfg: Mapping[str, Any] | None) -> str:
+    """``task.search_reward.angles`` checked: ``wrapped`` (the default) or ``absolute``."""
+    angles = "wrapped" if cfg is None else str(cfg.get("angles") or "wrapped")
+    if angles not in SEARCH_COST_ANGLES:
+        raise TaskError(f"task.search_reward.angles must be one of {', '.join(SEARCH_COST_ANGLES)}, got {angles!r}")
+    return angles
 
 
 def _kinematics(cfg: Mapping[str, Any] | None, env: gymnasium.Env, state_dim: int, action_repeat: int

@@ -256,6 +256,9 @@ def test_the_recipe_binds_the_tasks_angle_position_cost_where_it_declares_one():
     car = build(train_config("recipe=mc_pilco", "task=mountaincar"))
     assert car.make_propagator.keywords["search_cost"] == "widened"
     assert "task_search_cost" not in car.make_propagator.keywords
+    assert not cost.absolute_angles
+    turned = build(train_config("recipe=mc_pilco", "task.search_reward.angles=absolute"))
+    assert turned.make_propagator.keywords["task_search_cost"].absolute_angles
 
 
 def test_a_search_cost_the_task_cannot_give_is_refused_before_any_work():

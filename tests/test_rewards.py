@@ -209,6 +209,26 @@ def test_angle_distance_reward_is_mcpilco_cart_pole_cost():
     assert r[1] - r[0] > 0.4 * (r[2] - r[0]) > 0  # first order in the swing from hanging (a quadratic gives 0.25)
 
 
+def test_absolute_angles_score_each_extra_turn_as_mcpilco_writes_it():
+    """absolute_angles: exp(−((|θ| − π)/3)² − x²) on the raw angle; within one turn the wrapped form's value."""
+    widths = [1 / math.sqrt(2), math.inf, 3 / math.sqrt(2), math.inf]
+    cost = AngleDistanceReward(4, (2,), [0.0, 0.0, math.pi, 0.0], widths, absolute_angles=True)
+    gen = torch.Generator().manual_seed(10)
+    x = torch.rand(200, 4, generator=gen, dtype=DTYPE) * torch.tensor([4.0, 20.0, 8 * math.pi, 20.0]) - torch.tensor(
+        [2.0, 10.0, 4 * math.pi, 10.0])
+    want = torch.exp(-((x[:, 2].abs() - math.pi) / 3) ** 2 - x[:, 0] ** 2)
+    torch.testing.assert_close(cost(x), want, rtol=1e-12, atol=0)
+    one_turn = x[:, 2].abs() <= math.pi
+    torch.testing.assert_close(cost(x)[one_turn], mcpilco_cost()(x)[one_turn], rtol=1e-12, atol=0)
+    up = torch.tensor([[0.0, 0.0, s * math.pi, 0.0] for s in (1.0, -1.0, 3.0, -3.0)], dtype=DTYPE)
+    torch.testing.assert_close(mcpilco_cost()(up), torch.ones(4, dtype=DTYPE))  # wrapped: a turn-over is free
+    r = cost(up)
+    torch.testing.assert_close(r[:2], torch.ones(2, dtype=DTYPE))
+    torch.testing.assert_close(r[2:], torch.full((2,), math.exp(-((2 * math.pi) / 3) ** 2), dtype=DTYPE))
+    x = torch.tensor([[0.3, 1.0, 5.0, -1.0], [-0.2, 0.0, -7.5, 3.0]], dtype=DTYPE, requires_grad=True)
+    assert torch.autograd.gradcheck(cost, (x,))
+
+
 def test_angle_distance_reward_gradcheck_and_mixture():
     cost = mcpilco_cost()
     x = torch.tensor([[0.3, 1.0, 2.0, -1.0], [-0.2, 0.0, -2.5, 3.0]], dtype=DTYPE, requires_grad=True)

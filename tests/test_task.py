@@ -424,6 +424,15 @@ def test_search_reward_is_parsed_with_null_entries_left_out():
     np.testing.assert_array_equal(target, [0.0, 0.0, math.pi, 0.0])
     np.testing.assert_array_equal(widths, [0.7, math.inf, 2.1, math.inf])
     assert Task.from_config(CARTPOLE).search_cost is None
+    assert task.search_cost_angles == "wrapped"
+
+
+def test_search_reward_angles_are_checked():
+    search = {"target": [0.0, None, math.pi, None], "widths": [0.7, None, 2.1, None]}
+    task = Task.from_config({**CARTPOLE, "search_reward": {**search, "angles": "absolute"}})
+    assert task.search_cost_angles == "absolute"
+    with pytest.raises(TaskError, match=r"task\.search_reward\.angles must be one of wrapped, absolute, got 'raw'"):
+        Task.from_config({**CARTPOLE, "search_reward": {**search, "angles": "raw"}})
 
 
 @pytest.mark.parametrize("search", [
