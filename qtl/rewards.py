@@ -199,10 +199,10 @@ class AngleDistanceReward:
 
     def __call__(self, x: Tensor) -> Tensor:
         """Reward of raw states `... x D`: `...`."""
-        raw = x[..., self.dims]
-        diff = raw - self.target.to(x)
+        raw, target = x[..., self.dims], self.target.to(x)
+        diff = raw - target
         if self.absolute_angles:
-            angular = raw.abs() - self.target.to(x)  # every turn beyond the first counts
+            angular = raw.abs() - target  # every turn beyond the first counts
         else:
             angular = torch.remainder(diff + math.pi, 2 * math.pi) - math.pi  # in [−π, π)
         diff = torch.where(self.is_angle.to(x.device), angular, diff)
