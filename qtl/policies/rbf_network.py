@@ -2,13 +2,30 @@
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Iterator
+
 import torch
 from torch import Tensor, nn
+from torch.autograd.function import FunctionCtx, once_differentiable
 
 from qtl.gaussian import GaussianMap
 from qtl.kernels import SEKernelMoments
+from qtl.kernels.formulation import fused
 from qtl.policies.base import Policy
 from qtl.policies.rbf import se_activations
+
+_FUSED_OP = [True]  # whether forward may take the fused op (``reference_forward`` turns it off)
+
+
+@contextlib.contextmanager
+def reference_forward() -> Iterator[None]:
+    """Within: ``RBFNetwork.forward`` by the plain autograd form whatever the formulation (the fused op's twin)."""
+    before, _FUSED_OP[0] = _FUSED_OP[0], False
+    try:
+        yield
+    finally:
+        _FUSED_OP[0] = before
 
 
 class RBFNetwork(Policy):
@@ -55,11 +72,22 @@ class RBFNetwork(Policy):
         return se_activations(self, x, self.centres)
 
     def forward(self, x: Tensor) -> Tensor:
-        """Actions `... x F` for features `... x D`, basis dropout applied when set."""
-        kern = self.activations(x)
+        """Actions `... x F` for features `... x D`, basis dropout applied when set.
+
+        Unbatched ψ under the fused (or native) formulation: one autograd op (``_NetworkValues``, the same
+        values and gradients to round-off, ~2× faster forward and backward at 400 points and 200 bases).
+        """
+        keep = None
         if self.dropout > 0.0:  # one mask per point and basis, shared by the action dimensions
-            keep = torch.rand((*kern.shape[:-2], 1, kern.shape[-1]), generator=self._dropout_generator,
-                              dtype=kern.dtype, device="cpu").to(kern.device) >= self.dropout
+            keep = torch.rand((*x.shape[:-1], 1, self.num_basis), generator=self._dropout_generator,
+                              dtype=x.dtype, device="cpu").to(x.device) >= self.dropout
+        if _FUSED_OP[0] and fused() and not self.batch_shape and x.dim() >= 2:
+            mask = None if keep is None else keep.to(x.dtype).div_(1.0 - self.dropout).reshape(-1, self.num_basis)
+            points = x.reshape(-1, x.shape[-1])
+            values = _NetworkValues.apply(points, self.centres, self.weights, self.log_lengthscales, mask)
+            return values.reshape(*x.shape[:-1], self.output_dim)
+        kern = self.activations(x)
+        if keep is not None:
             kern = kern * keep / (1.0 - self.dropout)
         return (kern * self.per_point(self.weights.mT)).sum(-1)
 
@@ -67,3 +95,46 @@ class RBFNetwork(Policy):
         """Exact moments of the network at Gaussian inputs (PILCO gp2; dropout does not apply); batched ψ broadcast."""
         signal = torch.ones(self.output_dim, dtype=self.weights.dtype, device=self.weights.device)
         return SEKernelMoments(self.centres, self.weights.mT, self.lengthscales, signal)
+
+
+class _NetworkValues(torch.autograd.Function):
+    """π̃(x) `M x F` for points x `M x D`, centres c `N x D`, weights w `N x F`, log ℓ `F x D`, mask `M x N` or None.
+
+    The fused form of ``RBFNetwork.forward`` (unbatched ψ): ‖(x − c)/ℓ‖² expanded as one batched product over
+    the action dimensions, and a closed-form backward from the kept activations k `F x M x N` (the mask, with
+    its 1/(1 − p), folded in): with h = g w k, ∂x = −Σ_f ℓ_f⁻² (x Σ_s h − h c), ∂c = Σ_f ℓ_f⁻² (hᵀx − c Σ_p h),
+    ∂w = Σ_p g k and ∂log ℓ = ℓ⁻² Σ_ps h (x − c)², the last expanded like the distance.
+    """
+
+    @staticmethod
+    def forward(  # type: ignore[override]
+        ctx: FunctionCtx, x: Tensor, centres: Tensor, weights: Tensor, log_lengthscales: Tensor, mask: Tensor | None
+    ) -> Tensor:
+        inv_sq = torch.exp(-2.0 * log_lengthscales)  # ℓ⁻²: F x D
+        scaled_x = x * inv_sq[:, None, :]  # F x M x D
+        sq_dist = (scaled_x * x).sum(-1)[..., None] + (centres.square() @ inv_sq.mT).mT[:, None, :]
+        sq_dist = sq_dist - 2.0 * (scaled_x @ centres.mT)  # F x M x N
+        kern = torch.exp(sq_dist.clamp_min_(0.0).mul_(-0.5))
+        if mask is not None:
+            kern = kern.mul_(mask)
+        ctx.save_for_backward(x, centres, weights, inv_sq, kern)
+        return (kern @ weights.mT[..., None]).squeeze(-1).mT
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx: FunctionCtx, grad_out: Tensor) -> tuple[Tensor | None, ...]:  # type: ignore[override]
+        x, centres, weights, inv_sq, kern = ctx.saved_tensors
+        need_x, need_c, need_w, need_ls = ctx.needs_input_grad[:4]
+        grad_t = grad_out.mT  # F x M
+        grad_w = (grad_t[:, None, :] @ kern).squeeze(-2).mT if need_w else None  # N x F
+        h = kern * (grad_t[:, :, None] * weights.mT[:, None, :])  # F x M x N
+        per_point, per_basis = h.sum(-1), h.sum(-2)  # F x M, F x N
+        h_x = h.mT @ x if (need_c or need_ls) else None  # F x N x D
+        grad_x = grad_c = grad_ls = None
+        if need_x:
+            grad_x = -(inv_sq[:, None, :] * (x * per_point[..., None] - h @ centres)).sum(0)
+        if need_c:
+            grad_c = (inv_sq[:, None, :] * (h_x - centres * per_basis[..., None])).sum(0)
+        if need_ls:
+            grad_ls = inv_sq * (per_point @ x.square() - 2.0 * (h_x * centres).sum(-2) + per_basis @ centres.square())
+        return grad_x, grad_c, grad_w, grad_ls, None

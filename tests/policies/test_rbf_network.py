@@ -19,6 +19,7 @@ from qtl.policies import (
     rbf_network_policy,
     restart_state,
 )
+from qtl.policies.rbf_network import reference_forward
 from tests.propagation.restarts import RESTARTS, spread_restarts
 
 DTYPE = torch.float64
@@ -90,16 +91,76 @@ def test_moments_ignore_dropout():
         assert torch.equal(a, b)
 
 
-def test_gradcheck_forward_wrt_input_and_all_psi():
+@pytest.mark.parametrize("rate", [0.0, 0.3])
+@pytest.mark.parametrize("moments", ["reference", "fused"])
+def test_gradcheck_forward_wrt_input_and_all_psi(moments, rate):
+    """Finite differences (float64) of both forms, dropout included (the same masks at every evaluation)."""
     net = make_network(num_basis=4)
     names = [name for name, _ in net.named_parameters()]
     x = torch.randn(5, 3, generator=torch.Generator().manual_seed(2), dtype=DTYPE).requires_grad_()
     psi = tuple(p.detach().clone().requires_grad_() for p in net.parameters())
 
     def act(inputs: Tensor, *params: Tensor) -> Tensor:
+        net.set_dropout(rate, torch.Generator().manual_seed(3))  # one mask for every evaluation
         return torch.func.functional_call(net, dict(zip(names, params, strict=True)), (inputs,))
 
-    assert torch.autograd.gradcheck(act, (x, *psi))
+    with formulation(moments):
+        assert torch.autograd.gradcheck(act, (x, *psi))
+
+
+@pytest.mark.parametrize("rate", [0.0, 0.25])
+@pytest.mark.parametrize(("output_dim", "shape"), [(1, (400, 5)), (2, (2, 3, 5))])
+def test_fused_forward_equals_the_reference(output_dim, shape, rate):
+    """The fused op (one autograd node) gives the reference's actions and gradients for x and ψ, to round-off."""
+    net = make_network(input_dim=5, output_dim=output_dim, num_basis=23, seed=4)
+    gen = torch.Generator().manual_seed(5)
+    x = torch.randn(*shape, generator=gen, dtype=DTYPE)
+    probe = torch.randn(*shape[:-1], output_dim, generator=gen, dtype=DTYPE)
+    results = []
+    for moments in ("reference", "fused"):
+        net.set_dropout(rate, torch.Generator().manual_seed(6))  # the same masks in both
+        point = x.clone().requires_grad_()
+        with formulation(moments):
+            actions = net(point)
+        grads = torch.autograd.grad((actions * probe).sum(), (point, *net.parameters()))
+        results.append((actions, *grads))
+    for got, want in zip(results[1], results[0], strict=True):
+        torch.testing.assert_close(got, want, rtol=RTOL, atol=ATOL * want.abs().max().item())
+    assert rate == 0.0 or (results[0][0] == 0).sum() < results[0][0].numel()  # masks kept some bases
+
+
+def graph_nodes(t: Tensor) -> str:
+    """The names of the autograd nodes within three steps of ``t``."""
+    names, nodes = [], [t.grad_fn]
+    for _ in range(3):
+        names += [node.name() for node in nodes if node is not None]
+        nodes = [nxt for node in nodes if node is not None for nxt, _ in node.next_functions]
+    return " ".join(names)
+
+
+def test_reference_forward_turns_the_fused_op_off():
+    """Within ``reference_forward`` the fused formulation's actions are the plain form's, bit for bit."""
+    net = make_network(input_dim=5, output_dim=1, num_basis=9)
+    x = torch.randn(7, 5, generator=torch.Generator().manual_seed(8), dtype=DTYPE)
+    with formulation("reference"):
+        plain = net(x)
+    with formulation("fused"):
+        with reference_forward():
+            assert torch.equal(net(x), plain) and "_NetworkValues" not in graph_nodes(net(x))
+        assert "_NetworkValuesBackward" in graph_nodes(net(x))
+
+
+def test_fused_forward_skips_the_gradients_nobody_needs():
+    """Points without gradient (a rollout's start) and frozen ψ: the fused op's backward forms only what is asked."""
+    net = make_network(input_dim=5, output_dim=1, num_basis=9)
+    x = torch.randn(7, 5, generator=torch.Generator().manual_seed(8), dtype=DTYPE)
+    net.centres.requires_grad_(False)
+    with formulation("fused"):
+        net(x).sum().backward()
+    with formulation("reference"):
+        reference = torch.autograd.grad(net(x).sum(), net.weights)[0]
+    assert net.centres.grad is None and net.weights.grad is not None
+    torch.testing.assert_close(net.weights.grad, reference, rtol=RTOL, atol=ATOL)
 
 
 # -- dropout ------------------------------------------------------------------------------------------

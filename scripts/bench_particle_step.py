@@ -1,0 +1,139 @@
+"""Benchmark one particle rollout + gradient of a finished run's recipe: the RBF network's two forward forms.
+
+    .venv/bin/python scripts/bench_particle_step.py RUN_DIR [--checkpoint PATH] [--repeats 7] [--threads 1]
+        [--output docs/bench/particle_step.json] [--no-docs]
+
+On the run's data (its latest checkpoint, or ``--checkpoint``), the model refitted with the run's settings
+and the run's policy with the recipe's starting dropout (``optimizer.dropout``), one search evaluation, a
+rollout of the task's horizon and its ∂V/∂ψ, is timed with ``RBFNetwork.forward`` by the plain autograd
+form (``qtl.policies.rbf_network.reference_forward``, the old path) and by the fused op (the default), in
+alternation in this one process, after one warm-up each. The ratio of the medians is the speed-up; the two
+values of each pair (the same dropout masks and particle noise) are checked equal to round-off first.
+Writes JSON and the "particle_step" section of ``docs/benchmarks.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import functools
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import torch
+from omegaconf import OmegaConf
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import benchlib
+from probe_policy_search import refitted
+
+from qtl.checkpoint import latest_checkpoint, load_checkpoint
+from qtl.config import typed_groups
+from qtl.kernels.formulation import active_formulation
+from qtl.policies.rbf_network import reference_forward
+from qtl.seeding import torch_generator
+
+FORMS = {"reference": reference_forward, "fused": contextlib.nullcontext}
+# The two forms' values of one evaluation agree to this (relative): they differ in the order of operations,
+# which a 100-step closed loop amplifies, but not beyond this over one rollout.
+VALUE_RTOL = 1e-6
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("run_dir", type=Path)
+    parser.add_argument("--checkpoint", type=Path, help="default: the run's latest")
+    parser.add_argument("--repeats", type=int, default=7, help="timed evaluations per form, alternating")
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--output", type=Path, default=benchlib.ROOT / "docs" / "bench" / "particle_step.json")
+    parser.add_argument("--no-docs", action="store_true", help="do not write the section of docs/benchmarks.md")
+    args = parser.parse_args()
+    if not args.run_dir.is_dir():
+        parser.error(f"{args.run_dir} is not a run directory")
+    if args.repeats < 1:
+        parser.error("--repeats must be at least 1")
+    torch.set_num_threads(args.threads)
+
+    checkpoint_path = args.checkpoint or latest_checkpoint(args.run_dir)
+    checkpoint = load_checkpoint(checkpoint_path)
+    cfg = typed_groups(OmegaConf.create(checkpoint["config"]))
+    particle_run = cfg.propagation["_target_"].endswith("Particles")
+    if not particle_run or not cfg.policy["_target_"].endswith("rbf_network_policy"):
+        parser.error(f"{args.run_dir} is not a particle run with policy=rbf_network (e.g. recipe=mc_pilco)")
+    parts, data, model = refitted(checkpoint, [], 0)
+    policy = parts.initial_policy()
+    policy.load_state_dict(checkpoint["policy"])
+    propagator = parts.make_propagator(model, policy, parts.reward, angle_dims=parts.task.angle_dims)
+    objective = functools.partial(propagator.expected_return, parts.start, parts.task.horizon)
+
+    def evaluate(form: str, seed: int) -> tuple[float, float]:
+        """One evaluation (value and ∂V/∂ψ) under ``form``, with dropout masks from ``seed``: (value, seconds)."""
+        policy.set_dropout(cfg.optimizer.dropout, torch_generator(seed, 0, 0))
+        propagator.calls = seed  # the evaluation number, which picks the draw of particle noise and functions
+        policy.zero_grad()
+        tic = time.perf_counter()
+        with FORMS[form]():
+            value = objective()
+            value.backward()
+        return value.item(), time.perf_counter() - tic
+
+    times: dict[str, list[float]] = {form: [] for form in FORMS}
+    values: dict[str, list[float]] = {form: [] for form in FORMS}
+    for repeat in range(args.repeats + 1):  # the first pair is the warm-up
+        for form in FORMS:
+            value, seconds = evaluate(form, repeat)
+            if repeat:
+                times[form].append(seconds)
+                values[form].append(value)
+    spread = max(abs(a - b) / max(abs(b), 1e-12) for a, b in zip(values["fused"], values["reference"], strict=True))
+    medians = {form: statistics.median(ts) for form, ts in times.items()}
+    result = {
+        "run": benchlib.display_path(args.run_dir.resolve()),
+        "checkpoint": benchlib.display_path(Path(checkpoint_path).resolve()),
+        "n": len(data),
+        "particles": cfg.propagation.num_particles,
+        "horizon": parts.task.horizon,
+        "num_basis": cfg.policy.num_basis,
+        "dropout": cfg.optimizer.dropout,
+        "formulation": active_formulation(),
+        "times_s": times,
+        "median_s": medians,
+        "ratio": medians["fused"] / medians["reference"],
+        "max_value_relative_difference": spread,
+    }
+    info = {"command": benchlib.command_line(), "date": benchlib.today(), "commit": benchlib.commit(),
+            "machine": benchlib.machine()}
+    benchlib.write_results(args.output, info, [result])
+    print(f"n = {result['n']}: reference {medians['reference']:.3f} s, fused {medians['fused']:.3f} s, "
+          f"ratio {result['ratio']:.2f} (values agree to {spread:.1e})")
+    if spread > VALUE_RTOL:
+        raise SystemExit(f"the two forms' values differ by {spread:.2e} (relative), beyond {VALUE_RTOL:g}")
+    if not args.no_docs:
+        benchlib.write_section("particle_step", markdown(result, info, args.output))
+
+
+def markdown(result: dict, info: dict, output: Path) -> str:
+    """The section of docs/benchmarks.md: one row of the two forms' medians and their ratio."""
+    machine = info["machine"]
+    return "\n".join([
+        "## Particle rollout + gradient: the RBF network's forward forms",
+        "",
+        f"`{info['command']}` at {info['commit']}, {info['date']}, {machine['cpu']}, "
+        f"{machine['torch_threads']} torch thread(s); JSON `{benchlib.display_path(output)}`. One search evaluation "
+        f"(a {result['horizon']}-step rollout of P = {result['particles']} particles and its ∂V/∂ψ) on "
+        f"`{result['checkpoint']}`'s data, its policy with dropout {result['dropout']}, the two forms alternating "
+        f"in one process ({len(result['times_s']['fused'])} timed evaluations each, after one warm-up); "
+        f"`kernels.moments={result['formulation']}`.",
+        "",
+        "| n | basis functions | plain autograd form (old path) | fused op | ratio | values agree to |",
+        "| ---: | ---: | ---: | ---: | ---: | ---: |",
+        f"| {result['n']} | {result['num_basis']} | {result['median_s']['reference']:.3f} s | "
+        f"{result['median_s']['fused']:.3f} s | {result['ratio']:.2f}× | "
+        f"{result['max_value_relative_difference']:.1e} |",
+    ])
+
+
+if __name__ == "__main__":
+    main()
