@@ -1,4 +1,4 @@
-"""Benchmark one particle rollout + gradient of a finished run's recipe: the RBF network's two forward forms.
+"""Benchmark one particle rollout + gradient of a finished run's recipe: the RBF network's three forward forms.
 
     .venv/bin/python scripts/bench_particle_step.py RUN_DIR [--checkpoint PATH] [--repeats 7] [--threads 1]
         [--output docs/bench/particle_step.json] [--no-docs]
@@ -6,16 +6,16 @@
 On the run's data (its latest checkpoint, or ``--checkpoint``), the model refitted with the run's settings
 and the run's policy with the recipe's starting dropout (``optimizer.dropout``), one search evaluation, a
 rollout of the task's horizon and its ∂V/∂ψ, is timed with ``RBFNetwork.forward`` by the plain autograd
-form (``qtl.policies.rbf_network.reference_forward``, the old path) and by the fused op (the default), in
-alternation in this one process, after one warm-up each. The ratio of the medians is the speed-up; the two
-values of each pair (the same dropout masks and particle noise) are checked equal to round-off first.
+form (the old path), by the fused torch op and by its compiled twin (``qtl.policies.rbf_network.network_form``;
+the native one needs the build and ``kernels.moments=native``, else it is skipped), in alternation in this one
+process, after one warm-up each. Ratios of the medians against the plain form are the speed-ups; the forms'
+values of each round (the same dropout masks, particle noise and drawn functions) are checked equal first.
 Writes JSON and the "particle_step" section of ``docs/benchmarks.md``.
 """
 
 from __future__ import annotations
 
 import argparse
-import contextlib
 import functools
 import statistics
 import sys
@@ -32,10 +32,11 @@ from probe_policy_search import refitted
 from qtl.checkpoint import latest_checkpoint, load_checkpoint
 from qtl.config import typed_groups
 from qtl.kernels.formulation import active_formulation
-from qtl.policies.rbf_network import reference_forward
+from qtl.policies.rbf_network import network_form
 from qtl.seeding import torch_generator
 
-FORMS = {"reference": reference_forward, "fused": contextlib.nullcontext}
+# The network's forms, by ``network_form``: the plain autograd form (the old path), the fused op, its compiled twin.
+FORMS = {"reference": "reference", "fused": "fused", "native": "auto"}
 # The two forms' values of one evaluation agree to this (relative): they differ in the order of operations,
 # which a 100-step closed loop amplifies, but not beyond this over one rollout.
 VALUE_RTOL = 1e-6
@@ -74,20 +75,22 @@ def main() -> None:
         propagator.calls = seed  # the evaluation number, which picks the draw of particle noise and functions
         policy.zero_grad()
         tic = time.perf_counter()
-        with FORMS[form]():
+        with network_form(FORMS[form]):
             value = objective()
             value.backward()
         return value.item(), time.perf_counter() - tic
 
-    times: dict[str, list[float]] = {form: [] for form in FORMS}
-    values: dict[str, list[float]] = {form: [] for form in FORMS}
-    for repeat in range(args.repeats + 1):  # the first pair is the warm-up
-        for form in FORMS:
+    forms = [form for form in FORMS if form != "native" or active_formulation() == "native"]
+    times: dict[str, list[float]] = {form: [] for form in forms}
+    values: dict[str, list[float]] = {form: [] for form in forms}
+    for repeat in range(args.repeats + 1):  # the first round is the warm-up
+        for form in forms:
             value, seconds = evaluate(form, repeat)
             if repeat:
                 times[form].append(seconds)
                 values[form].append(value)
-    spread = max(abs(a - b) / max(abs(b), 1e-12) for a, b in zip(values["fused"], values["reference"], strict=True))
+    spread = max(abs(a - b) / max(abs(b), 1e-12)
+                 for form in forms for a, b in zip(values[form], values["reference"], strict=True))
     medians = {form: statistics.median(ts) for form, ts in times.items()}
     result = {
         "run": benchlib.display_path(args.run_dir.resolve()),
@@ -100,14 +103,14 @@ def main() -> None:
         "formulation": active_formulation(),
         "times_s": times,
         "median_s": medians,
-        "ratio": medians["fused"] / medians["reference"],
+        "ratios": {form: medians[form] / medians["reference"] for form in forms},
         "max_value_relative_difference": spread,
     }
     info = {"command": benchlib.command_line(), "date": benchlib.today(), "commit": benchlib.commit(),
             "machine": benchlib.machine()}
     benchlib.write_results(args.output, info, [result])
-    print(f"n = {result['n']}: reference {medians['reference']:.3f} s, fused {medians['fused']:.3f} s, "
-          f"ratio {result['ratio']:.2f} (values agree to {spread:.1e})")
+    print(f"n = {result['n']}: " + ", ".join(f"{form} {medians[form]:.3f} s ({result['ratios'][form]:.2f}×)"
+                                             for form in forms) + f"; values agree to {spread:.1e}")
     if spread > VALUE_RTOL:
         raise SystemExit(f"the two forms' values differ by {spread:.2e} (relative), beyond {VALUE_RTOL:g}")
     if not args.no_docs:
@@ -115,23 +118,23 @@ def main() -> None:
 
 
 def markdown(result: dict, info: dict, output: Path) -> str:
-    """The section of docs/benchmarks.md: one row of the two forms' medians and their ratio."""
-    machine = info["machine"]
+    """The section of docs/benchmarks.md: each form's median and its ratio to the plain form."""
+    machine, medians, ratios = info["machine"], result["median_s"], result["ratios"]
+    names = {"reference": "plain autograd form (old path)", "fused": "fused torch op", "native": "compiled op"}
     return "\n".join([
         "## Particle rollout + gradient: the RBF network's forward forms",
         "",
         f"`{info['command']}` at {info['commit']}, {info['date']}, {machine['cpu']}, "
         f"{machine['torch_threads']} torch thread(s); JSON `{benchlib.display_path(output)}`. One search evaluation "
         f"(a {result['horizon']}-step rollout of P = {result['particles']} particles and its ∂V/∂ψ) on "
-        f"`{result['checkpoint']}`'s data, its policy with dropout {result['dropout']}, the two forms alternating "
-        f"in one process ({len(result['times_s']['fused'])} timed evaluations each, after one warm-up); "
-        f"`kernels.moments={result['formulation']}`.",
+        f"`{result['checkpoint']}`'s data (n = {result['n']}), its policy ({result['num_basis']} bases) with dropout "
+        f"{result['dropout']}, the forms alternating in one process ({len(result['times_s']['reference'])} timed "
+        f"evaluations each, after one warm-up); `kernels.moments={result['formulation']}`. The forms' values "
+        f"agree to {result['max_value_relative_difference']:.1e} (relative).",
         "",
-        "| n | basis functions | plain autograd form (old path) | fused op | ratio | values agree to |",
-        "| ---: | ---: | ---: | ---: | ---: | ---: |",
-        f"| {result['n']} | {result['num_basis']} | {result['median_s']['reference']:.3f} s | "
-        f"{result['median_s']['fused']:.3f} s | {result['ratio']:.2f}× | "
-        f"{result['max_value_relative_difference']:.1e} |",
+        "| form of `RBFNetwork.forward` | median s per evaluation | ratio to the old path |",
+        "| --- | ---: | ---: |",
+        *(f"| {names[form]} | {medians[form]:.3f} | {ratios[form]:.2f}× |" for form in medians),
     ])
 
 

@@ -11,21 +11,30 @@ from torch.autograd.function import FunctionCtx, once_differentiable
 
 from qtl.gaussian import GaussianMap
 from qtl.kernels import SEKernelMoments
-from qtl.kernels.formulation import fused
+from qtl.kernels.formulation import fused, native
+from qtl.kernels.native import rbf_network as native_network
 from qtl.policies.base import Policy
 from qtl.policies.rbf import se_activations
 
-_FUSED_OP = [True]  # whether forward may take the fused op (``reference_forward`` turns it off)
+NETWORK_FORMS = ("auto", "fused", "reference")
+_FORM = ["auto"]  # how forward computes the network (``network_form`` sets it)
 
 
 @contextlib.contextmanager
-def reference_forward() -> Iterator[None]:
-    """Within: ``RBFNetwork.forward`` by the plain autograd form whatever the formulation (the fused op's twin)."""
-    before, _FUSED_OP[0] = _FUSED_OP[0], False
+def network_form(form: str) -> Iterator[None]:
+    """Within: ``RBFNetwork.forward`` by ``form`` (tests and benchmarks of the twins).
+
+    ``auto``: the formulation's (plain under ``reference``, the fused op under ``fused``, its compiled twin under
+    ``native`` where it applies); ``fused``: the fused torch op even under ``native``; ``reference``: the plain
+    autograd form whatever the formulation.
+    """
+    if form not in NETWORK_FORMS:
+        raise ValueError(f"network form must be one of {', '.join(NETWORK_FORMS)}, got {form!r}")
+    before, _FORM[0] = _FORM[0], form
     try:
         yield
     finally:
-        _FUSED_OP[0] = before
+        _FORM[0] = before
 
 
 class RBFNetwork(Policy):
@@ -74,17 +83,22 @@ class RBFNetwork(Policy):
     def forward(self, x: Tensor) -> Tensor:
         """Actions `... x F` for features `... x D`, basis dropout applied when set.
 
-        Unbatched ψ under the fused (or native) formulation: one autograd op (``_NetworkValues``, the same
-        values and gradients to round-off, ~2× faster forward and backward at 400 points and 200 bases).
+        Unbatched ψ under the fused formulation: one autograd op (``_NetworkValues``, the same values and
+        gradients to round-off, ~2× faster forward and backward at 400 points and 200 bases); under the native
+        one, for float64 CPU operands, its compiled twin (`qtl/kernels/native/rbf_network.c`).
         """
         keep = None
         if self.dropout > 0.0:  # one mask per point and basis, shared by the action dimensions
             keep = torch.rand((*x.shape[:-1], 1, self.num_basis), generator=self._dropout_generator,
                               dtype=x.dtype, device="cpu").to(x.device) >= self.dropout
-        if _FUSED_OP[0] and fused() and not self.batch_shape and x.dim() >= 2:
+        if _FORM[0] != "reference" and fused() and not self.batch_shape and x.dim() >= 2:
             mask = None if keep is None else keep.to(x.dtype).div_(1.0 - self.dropout).reshape(-1, self.num_basis)
             points = x.reshape(-1, x.shape[-1])
-            values = _NetworkValues.apply(points, self.centres, self.weights, self.log_lengthscales, mask)
+            psi = (self.centres, self.weights, self.log_lengthscales)
+            if _FORM[0] == "auto" and native() and native_network.applicable(points, *psi, mask):  # compiled
+                values = native_network.network_values(points, *psi, mask)
+            else:
+                values = _NetworkValues.apply(points, *psi, mask)
             return values.reshape(*x.shape[:-1], self.output_dim)
         kern = self.activations(x)
         if keep is not None:

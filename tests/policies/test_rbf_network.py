@@ -19,7 +19,7 @@ from qtl.policies import (
     rbf_network_policy,
     restart_state,
 )
-from qtl.policies.rbf_network import reference_forward
+from qtl.policies.rbf_network import network_form
 from tests.propagation.restarts import RESTARTS, spread_restarts
 
 DTYPE = torch.float64
@@ -138,14 +138,14 @@ def graph_nodes(t: Tensor) -> str:
     return " ".join(names)
 
 
-def test_reference_forward_turns_the_fused_op_off():
-    """Within ``reference_forward`` the fused formulation's actions are the plain form's, bit for bit."""
+def test_the_reference_form_turns_the_fused_op_off():
+    """Within ``network_form("reference")`` the fused formulation's actions are the plain form's, bit for bit."""
     net = make_network(input_dim=5, output_dim=1, num_basis=9)
     x = torch.randn(7, 5, generator=torch.Generator().manual_seed(8), dtype=DTYPE)
     with formulation("reference"):
         plain = net(x)
     with formulation("fused"):
-        with reference_forward():
+        with network_form("reference"):
             assert torch.equal(net(x), plain) and "_NetworkValues" not in graph_nodes(net(x))
         assert "_NetworkValuesBackward" in graph_nodes(net(x))
 

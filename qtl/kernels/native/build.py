@@ -2,10 +2,10 @@
 
     python -m qtl.kernels.native.build [--force] [--optional]
 
-Compiles every `*.c` of this directory (`exp_sum.c`, `se_moments.c`, `trig.c`, `pathwise.c`) with
+Compiles every `*.c` of this directory (`exp_sum.c`, `se_moments.c`, `trig.c`, `pathwise.c`, `rbf_network.c`) with
 `artefact.COMPILER` and `artefact.FLAGS` into `_exp_sum-<key>.so`, the key a hash of the sources, the flags
 and the CPU (so a changed source or another machine rebuilds), then checks the exp sums, the SE-kernel
-moments and the pathwise-function values against their torch twins on small problems before keeping it
+moments, the pathwise-function values and the RBF network against their torch twins on small problems before keeping it
 (the angle-feature and squashing kernels of `trig.c` are compared with theirs by the test suite). ``--optional`` (used
 by `scripts/setup.sh`) turns a failed build into one line saying that qtl will use the torch path.
 """
@@ -27,6 +27,8 @@ from qtl.kernels.native.exp_sum import NativeWeightedExpSum
 from qtl.kernels.native.library import ExpSumLibrary, load_exp_sum
 from qtl.kernels.native.pathwise import PathValuesLibrary
 from qtl.kernels.native.pathwise import check_against_torch as check_path_values
+from qtl.kernels.native.rbf_network import NetworkLibrary
+from qtl.kernels.native.rbf_network import check_against_torch as check_network
 from qtl.kernels.native.se_moments import SEMomentsLibrary
 from qtl.kernels.native.se_moments_check import check_against_torch as check_se_moments
 
@@ -92,6 +94,7 @@ def build(force: bool = False) -> Path:
         check_against_torch()
         check_se_moments(SEMomentsLibrary(target), error=BuildError)
         check_path_values(PathValuesLibrary(target), error=BuildError)
+        check_network(NetworkLibrary(target), error=BuildError)
     except BaseException:
         target.unlink(missing_ok=True)
         raise
