@@ -84,8 +84,8 @@ class RBFNetwork(Policy):
         """Actions `... x F` for features `... x D`, basis dropout applied when set.
 
         Unbatched ψ under the fused formulation: one autograd op (``_NetworkValues``, the same values and
-        gradients to round-off, ~2× faster forward and backward at 400 points and 200 bases); under the native
-        one, for float64 CPU operands, its compiled twin (`qtl/kernels/native/rbf_network.c`).
+        gradients to round-off); under the native one, for float64 CPU operands, its compiled twin
+        (`qtl/kernels/native/rbf_network.c`). Their timings against this plain form: `scripts/bench_particle_step.py`.
         """
         keep = None
         if self.dropout > 0.0:  # one mask per point and basis, shared by the action dimensions
