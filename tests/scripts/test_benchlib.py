@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -85,3 +86,12 @@ def test_run_all_runs_every_item_when_one_fails() -> None:
     else:
         raise AssertionError("a failed run was not reported")
     assert sorted(ran) == [0, 1, 2, 3, 4]
+
+
+def test_each_generated_section_of_the_benchmarks_doc_holds_only_its_own_heading() -> None:
+    """A script rewrites everything between its markers: prose hand-written inside them would be lost."""
+    text = (Path(__file__).resolve().parents[2] / "docs" / "benchmarks.md").read_text()
+    sections = re.findall(r"<!-- (\S+):begin -->\n(.*?)<!-- \1:end -->", text, flags=re.S)
+    assert len(sections) == text.count(":begin -->") == text.count(":end -->")
+    crowded = [name for name, body in sections if len(re.findall(r"^## ", body, flags=re.M)) > 1]
+    assert not crowded, f"sections holding more than their own '## ' heading: {crowded}"
