@@ -100,3 +100,18 @@ def test_sweeps_launch_every_approach_of_a_target_and_seed_together(preset):
     # sweep stopped part-way (sweeps span sessions) leaves whole comparisons, not one approach's runs only.
     params = yaml.safe_load((ROOT / "configs" / "experiment" / f"{preset}.yaml").read_text())["hydra"]["sweeper"]
     assert list(params["params"])[-1] == "approach"
+
+
+@pytest.mark.parametrize("preset", sorted(p.stem for p in (ROOT / "configs" / "experiment").glob("*.yaml")
+                                          if "_quick" not in p.stem))
+def test_full_scale_presets_go_sparse_above_300_tuples_as_pilco_does(preset):
+    # PILCO's train.m trains FITC with its 300 pseudo-inputs as soon as the data exceed them; the paper ran PILCO.
+    # Source and target presets must agree, or a target's GP would differ from its source's in kind.
+    from hydra import compose, initialize_config_module
+
+    from qtl.config import register_configs
+
+    register_configs()
+    with initialize_config_module(config_module="qtl.configs", version_base="1.3"):
+        model = compose(config_name="train", overrides=[f"experiment={preset}"]).model
+    assert (model.sparse_above, model.inducing) == (300, 300)
