@@ -173,7 +173,7 @@ def test_recipe_mc_pilco_composes_the_particle_recipe():
     assert policy._target_ == "qtl.policies.rbf_network_policy" and policy.num_basis == 200
     assert opt._target_ == "qtl.policy_search.AdamSearch"
     assert (opt.steps, opt.lr, opt.keep, opt.dropout, opt.dropout_reduction, opt.lr_min, opt.batched, opt.restarts) \
-        == (2000, 0.01, "last", 0.25, 0.125, 0.0025, False, 1)
+        == (2000, 0.01, "validated", 0.25, 0.125, 0.0025, False, 1)
     assert OmegaConf.to_container(opt.plateau) == {"ema": 0.99, "threshold": 0.08, "window": 200, "min_steps": 200}
     assert cfg.task.env.id == train_config().task.env.id  # the task is untouched
     assert train_config("recipe=mc_pilco", "optimizer.dropout=0.1").optimizer.dropout == 0.1  # overrides win
@@ -208,7 +208,8 @@ def test_dropout_without_particles_and_a_network_is_refused_in_one_line(override
 def test_the_mc_pilco_recipe_runs_the_loop_end_to_end(tmp_path, caplog):
     """recipe=mc_pilco shrunk to seconds: one learned episode, its predicted return and evaluations recorded.
 
-    Plateaus (window 3 after 3 steps) can come at steps 5 and 9, not a third within 10 steps: 10 + 1 evaluations.
+    Plateaus (window 3 after 3 steps) can come at steps 5 and 9, not a third within 10 steps: 10 evaluations, then
+    keep=validated values the start, a snapshot after each of steps 1-9 (every max(1, 10 // 20) steps) and the end.
     """
     cfg = train_config(*ADAM_TINY, "recipe=mc_pilco", "episodes=1", "optimizer.steps=10", "optimizer.plateau.window=3",
                        "optimizer.plateau.min_steps=3", "propagation.num_particles=20", "policy.num_basis=20",
@@ -220,7 +221,7 @@ def test_the_mc_pilco_recipe_runs_the_loop_end_to_end(tmp_path, caplog):
     assert [r["kind"] for r in rows] == ["random", "policy"]
     learned = rows[1]
     assert math.isfinite(float(learned["predicted_return"])) and float(learned["predicted_return"]) > 0
-    assert int(learned["policy_evaluations"]) == 11  # 10 steps and keep=last's evaluation
+    assert int(learned["policy_evaluations"]) == 10 + 1 + 9 + 1
     assert any("plateau after" in r.getMessage() for r in caplog.records)  # the schedule ran
     assert len(result.returns) == 2 and all(math.isfinite(r) for r in result.returns)
     assert (tmp_path / "checkpoints" / "episode_0001.pt").exists()
@@ -256,9 +257,9 @@ def test_the_recipe_binds_the_tasks_angle_position_cost_where_it_declares_one():
     car = build(train_config("recipe=mc_pilco", "task=mountaincar"))
     assert car.make_propagator.keywords["search_cost"] == "widened"
     assert "task_search_cost" not in car.make_propagator.keywords
-    assert not cost.absolute_angles
-    turned = build(train_config("recipe=mc_pilco", "task.search_reward.angles=absolute"))
-    assert turned.make_propagator.keywords["task_search_cost"].absolute_angles
+    assert cost.absolute_angles  # MC-PILCO's |θ| − π: the cart-pole's default
+    wrapped = build(train_config("recipe=mc_pilco", "task.search_reward.angles=wrapped"))
+    assert not wrapped.make_propagator.keywords["task_search_cost"].absolute_angles
 
 
 def test_a_search_cost_the_task_cannot_give_is_refused_before_any_work():

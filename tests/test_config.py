@@ -51,8 +51,8 @@ GROUP_OPTIONS = [(group, option) for group in GROUP_SCHEMAS for option in option
 
 def test_groups_have_the_expected_options():
     assert options("task") == [
-        "cartpole", "helicopter", "inverted_pendulum", "mountaincar", "mountaincar_continuous", "pendulum",
-        "quadcopter",
+        "cartpole", "cartpole_dt005", "helicopter", "inverted_pendulum", "mountaincar", "mountaincar_continuous",
+        "pendulum", "quadcopter",
     ]
     assert "moment_matching" in options("propagation")
     assert {"rbf", "linear"} <= set(options("policy"))
@@ -79,8 +79,9 @@ def test_every_task_composes_and_builds_with_one_horizon(task):
 @pytest.mark.parametrize("task", options("task"))
 def test_task_files_list_only_real_kwargs_that_the_task_changes(task):
     skip_without_extra(task)
-    env = dict(OmegaConf.load(CONFIG_DIR / "task" / f"{task}.yaml").env)
-    params = constructor_parameters(env.pop("id"))
+    env = dict(OmegaConf.load(CONFIG_DIR / "task" / f"{task}.yaml").env)  # the file's own keys (not a base's)
+    env.pop("id", None)
+    params = constructor_parameters(composed(f"task={task}").task.env.id)
     assert "horizon" not in env, "the horizon is task.horizon, passed to the env"
     for key, value in env.items():
         assert key in params, f"task/{task}.yaml: task.env.{key} is no constructor kwarg of the env"
@@ -180,3 +181,21 @@ def test_help_describes_every_key():
     leaves = [f.name for f in dataclasses.fields(TrainConfig) if f.name not in GROUP_SCHEMAS]
     for name in leaves:
         assert f"  {name}" in text
+
+
+def test_the_fine_cartpole_is_the_cartpole_at_half_the_period_with_the_same_test_in_seconds():
+    base, fine = composed("task=cartpole").task, composed("task=cartpole_dt005").task
+    assert fine.env.dt == 0.05 and fine.horizon == 2 * base.horizon
+    assert fine.success.last_steps == 2 * base.success.last_steps and fine.success.threshold == base.success.threshold
+    with Task.from_config(OmegaConf.to_container(base, resolve=True)).make_env() as env:
+        assert env.unwrapped.dt == 2 * fine.env.dt  # the env's own default period
+    assert {k: v for k, v in fine.items() if k not in ("env", "horizon", "success")} == {
+        k: v for k, v in base.items() if k not in ("env", "horizon", "success")}
+
+
+def test_the_particle_preset_is_the_benchmarked_configuration():
+    # docs/benchmarks.md's 5-seed particle benchmark ran these overrides; the preset must resolve to the same config.
+    measured = composed("recipe=mc_pilco", "+task.env.dt=0.05", "task.horizon=100", "task.success.last_steps=40",
+                        "optimizer.keep=validated", "task.search_reward.angles=absolute")
+    preset = composed("task=cartpole_dt005", "recipe=mc_pilco")
+    assert OmegaConf.to_container(preset) == OmegaConf.to_container(measured)

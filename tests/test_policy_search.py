@@ -617,7 +617,7 @@ def test_a_plateau_rule_given_as_hydra_passes_it():
     """``optimizer.plateau`` of recipe=mc_pilco reaches AdamSearch as a DictConfig and becomes a PlateauRule."""
     search = instantiate(train_config("recipe=mc_pilco").optimizer)
     assert isinstance(search, AdamSearch) and search.plateau == PlateauRule(0.99, 0.08, 200, 200)
-    assert (search.keep, search.dropout, search.lr, search.lr_min, search.batched) == ("last", 0.25, 0.01, 0.0025,
+    assert (search.keep, search.dropout, search.lr, search.lr_min, search.batched) == ("validated", 0.25, 0.01, 0.0025,
                                                                                        False)
     plain = AdamSearch(plateau={"ema": 0.9, "threshold": 0.05, "window": 3, "min_steps": 1})
     assert plain.plateau == PlateauRule(0.9, 0.05, 3, 1)
