@@ -69,6 +69,7 @@ from torch import Tensor
 from qtl.errors import NonFiniteObjective, UserError
 from qtl.gaussian import Gaussian, matrix_root, sample_moments
 from qtl.kernels import gp_predictive
+from qtl.models import SparseDynamicsGP
 from qtl.policies.base import Policy
 from qtl.propagation.base import DynamicsSource, Rollout
 from qtl.propagation.gp_cache import propagation_inputs
@@ -84,6 +85,10 @@ MIN_PARTICLES = 2
 SQRT_VARIANCE_FLOOR = 1e-30
 # The base noise is drawn in this dtype and then converted to the propagation's.
 NOISE_DTYPE = torch.float64
+# Matheron's update here is the exact GP's, k(x, X)(K + σ_ε²I)⁻¹(y − f̃(X) − ε): a sparse GP's cache (inducing inputs,
+# K_mm⁻¹ − Σ⁻¹) in its place gives functions of the wrong spread (its own update, with q(u), is not built).
+PATHWISE_NEEDS_EXACT = ("propagation.sampling=pathwise draws from the exact GP only: set model=exact or a "
+                        "model.sparse_above at least the run's tuples, or propagation.sampling=marginal")
 # The stream of the Gaussian-resampling noise within a draw (the start and step noise use stream 0).
 RESAMPLING_STREAM = 1
 # The stream of the pathwise functions' random numbers within a draw.
@@ -265,6 +270,9 @@ class Particles:
         if search_cost == "task" and task_search_cost is None:
             raise UserError("propagation.search_cost=task, but the task declares no search_reward: add "
                             "task.search_reward or set propagation.search_cost=widened (or auto)")
+        if sampling == "pathwise" and isinstance(model, SparseDynamicsGP):
+            inducing = model.inducing_points.shape[-2]
+            raise UserError(f"{PATHWISE_NEEDS_EXACT} (the model is sparse, {inducing} inducing inputs)")
         data, self.features, self.dtype = propagation_inputs(model, policy, reward, angle_dims, dtype)
         self.state_dim = self.features.state_dim
         self.policy = policy

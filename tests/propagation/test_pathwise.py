@@ -17,12 +17,19 @@ from qtl.errors import UserError
 from qtl.features import AngleFeatures
 from qtl.gaussian import Gaussian
 from qtl.kernels.exp_sum import backend
-from qtl.models import GPPosteriorCache
+from qtl.models import GPPosteriorCache, SparseDynamicsGP
 from qtl.policies import RBFPolicy, SquashedPolicy
 from qtl.propagation import Particles
 from qtl.propagation.particles import PATHWISE_STREAM, _draw_seed
 from qtl.propagation.pathwise import FeatureDraw, MatheronPaths, draw_features, matheron_paths, path_values
-from tests.helpers import gradcheck_value_wrt_policy_and_start, quadratic_reward, squashed_rbf_parts, tiny_config
+from tests.conftest import make_gp
+from tests.helpers import (
+    gradcheck_value_wrt_policy_and_start,
+    quadratic_reward,
+    squashed_rbf_parts,
+    tiny_config,
+    train_config,
+)
 from tests.propagation.restarts import assert_restarts_equal_separate
 
 DTYPE = torch.float64
@@ -338,6 +345,53 @@ def test_build_refuses_bad_particle_settings_before_any_work(override, message):
     with pytest.raises(UserError, match=message):
         build(tiny_config("propagation=particles", override))
 
+
+
+def _sparse_gp(n: int = 60, inducing: int = 10) -> SparseDynamicsGP:
+    """An SGPR on the toy data of ``make_gp`` with its θ (no fitting)."""
+    gp = make_gp(n, 2, 1, seed=12)
+    inputs, targets = gp.train_inputs[0][0], gp.train_targets.mT  # `E x n x D` shared inputs, `E x n` targets
+    return SparseDynamicsGP(inputs, targets, gp.hyperparameters, num_inducing=inducing,
+                            generator=torch.Generator().manual_seed(0))
+
+
+def test_exact_matheron_update_on_a_sparse_cache_would_misstate_the_spread(mc):
+    # Why a sparse model is refused: its cache (Z, K_mm⁻¹ − Σ⁻¹, β) in the exact update gives the right mean but
+    # not the sparse posterior's variance (here 1.1-1.6x too large, beyond the MC error of 200 x 200 functions).
+    cache = _sparse_gp().posterior_cache()
+    points = torch.tensor([[0.1, -0.2, 0.3], [0.5, 0.4, -0.6], [-1.0, 0.8, 0.0]], dtype=DTYPE)
+    mean, cov = exact_posterior(cache, points)
+    values = values_at(cache, draw_paths(cache, 200, 64, seeds=range(200)), points)
+    variance = centred_products(values, mean).mean((0, 1)).diagonal(dim1=-2, dim2=-1)
+    exact = cov.diagonal(dim1=-2, dim2=-1)
+    assert (variance > exact).all() and (variance / exact).mean() > 1.2
+
+
+def test_pathwise_particles_refuse_a_sparse_model(gp_factory):
+    _, policy, reward = squashed_rbf_parts(gp_factory, 2, (), 5, (12, 1))
+    with pytest.raises(UserError, match=r"draws from the exact GP only.*sparse, 10 inducing inputs"):
+        Particles(_sparse_gp(), policy, reward, angle_dims=(), sampling="pathwise")
+
+
+@pytest.mark.parametrize(("overrides", "refused"), [
+    (["model=sparse"], "model=sparse"),
+    (["episodes=3", "task.horizon=30", "model.sparse_above=100"], "reaches 120 tuples > model.sparse_above=100"),
+    (["episodes=3", "task.horizon=30", "model.sparse_above=120"], None),
+    (["episodes=3", "task.horizon=30", "model.sparse_above=null"], None),
+])
+def test_build_refuses_pathwise_sampling_with_a_model_that_goes_sparse(overrides, refused):
+    cfg = tiny_config("propagation=particles", "propagation.sampling=pathwise", *overrides)
+    if refused is None:
+        build(cfg)
+        return
+    with pytest.raises(UserError, match=refused):
+        build(cfg)
+
+
+def test_the_particle_preset_stays_exact_for_its_ten_episodes():
+    build(train_config("task=cartpole_dt005", "recipe=mc_pilco", "episodes=9"))  # 1000 tuples, not above 1000
+    with pytest.raises(UserError, match="reaches 1100 tuples"):
+        build(train_config("task=cartpole_dt005", "recipe=mc_pilco", "episodes=10"))
 
 # -- path_dtype: the drawn functions evaluated in float32 within a float64 rollout ----------------------------
 
