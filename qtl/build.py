@@ -25,7 +25,6 @@ from qtl.models import DynamicsGP, GPHyperparameters, ModelFit, PreviousFit
 from qtl.policies import Policy, SquashedPolicy
 from qtl.policy_search import SearchResult
 from qtl.propagation import PropagatorFactory
-from qtl.propagation.particles import PATHWISE_NEEDS_EXACT
 from qtl.rewards import AngleDistanceReward, ExpectedSaturatingReward
 from qtl.seeding import ENV_STREAM, POLICY_INIT_STREAM, derive_seed, torch_generator
 from qtl.task import Task, diagonal_gaussian
@@ -152,7 +151,6 @@ def build(cfg: DictConfig) -> Parts:
     if check is not None:  # e.g. an unknown propagation.sampling: a UserError here, not at the first search
         check(**make_propagator.keywords)
     _check_dropout(cfg)
-    _check_pathwise_model(cfg, task)
     make_propagator = _with_search_cost(make_propagator, task, cfg)
     make_propagator = _with_kinematics(make_propagator, task, cfg)
     parts = Parts(
@@ -223,18 +221,6 @@ def _check_lr_scales(parts: Parts) -> None:
         parts.search.param_groups(named, 1.0)
     except ValueError as err:
         raise UserError(str(err)) from None
-
-
-def _check_pathwise_model(cfg: DictConfig, task: Task) -> None:
-    """Pathwise particles need the exact GP for every fit of the run: a model that goes sparse is refused here."""
-    if cfg.propagation.get("sampling") != "pathwise":
-        return
-    if str(cfg.model._target_).endswith("SparseFit"):
-        raise UserError(f"{PATHWISE_NEEDS_EXACT} (model=sparse)")
-    sparse_above = cfg.model.get("sparse_above")
-    most = (int(cfg.episodes) + 1) * task.horizon  # tuples after the run's last episode
-    if sparse_above is not None and most > int(sparse_above):
-        raise UserError(f"{PATHWISE_NEEDS_EXACT} (this run reaches {most} tuples > model.sparse_above={sparse_above})")
 
 
 def _check_dropout(cfg: DictConfig) -> None:

@@ -84,13 +84,17 @@ class GPPosteriorCache:
     """What prediction at uncertain inputs needs of a fitted :class:`DynamicsGP`.
 
     ``inputs``: `n x D` training inputs; ``K_inv``: `E x n x n`, (K + σ_ε²I)⁻¹ per output;
-    ``beta``: `E x n`, (K + σ_ε²I)⁻¹ y per output; ``hyperparameters``: θ.
+    ``beta``: `E x n`, (K + σ_ε²I)⁻¹ y per output; ``hyperparameters``: θ. A sparse GP's cache has the same
+    form at its m inducing inputs Z (``K_inv`` = K_mm⁻¹ − Σ⁻¹) and adds, for pathwise samples, ``prior_inv`` K_mm⁻¹
+    and ``update_root`` R `E x m x m` with R Rᵀ = Σ⁻¹ (the covariance of q(u) mapped by K_mm⁻¹); None when exact.
     """
 
     inputs: Tensor
     K_inv: Tensor
     beta: Tensor
     hyperparameters: GPHyperparameters
+    prior_inv: Tensor | None = None
+    update_root: Tensor | None = None
 
 
 def _check_data(train_x: Tensor, train_y: Tensor) -> None:

@@ -230,8 +230,14 @@ class SparseDynamicsGP(DynamicsGP):
             # β = σ⁻² Σ⁻¹ K_mn y = L_m⁻ᵀ B⁻¹ A y / σ.
             ay = (a @ self.train_targets[..., None]) / noise_std[:, None, None]  # E x m x 1
             beta = torch.linalg.solve_triangular(chol_m.mT, torch.cholesky_solve(ay, chol_b), upper=True)
+            # Pathwise samples (Wilson et al. 2020, sparse form): f = f̃ + k(·, Z) K_mm⁻¹ (u − f̃(Z)), u ~ q(u), i.e.
+            # v = β − K_mm⁻¹ f̃(Z) + R ξ with R Rᵀ = K_mm⁻¹ S_u K_mm⁻¹ = Σ⁻¹ = L_m⁻ᵀ B⁻¹ L_m⁻¹: R = L_m⁻ᵀ L_B⁻ᵀ.
+            prior_inv = torch.cholesky_inverse(chol_m)
+            root_b = torch.linalg.solve_triangular(chol_b.mT, eye.expand_as(chol_b), upper=True)  # L_B⁻ᵀ
+            update_root = torch.linalg.solve_triangular(chol_m.mT, root_b, upper=True)
         return GPPosteriorCache(inputs=self.inducing_points, K_inv=k_inv, beta=beta.squeeze(-1),
-                                hyperparameters=self.hyperparameters)
+                                hyperparameters=self.hyperparameters, prior_inv=0.5 * (prior_inv + prior_inv.mT),
+                                update_root=update_root)
 
     def predict(self, x: Tensor, *, include_noise: bool = False) -> tuple[Tensor, Tensor]:
         """Predictive mean and variance of Δ at deterministic inputs `k x D` (Eq. 1-2, sparse form): `k x E` each."""

@@ -18,9 +18,9 @@ log = logging.getLogger(__name__)
 
 
 def _tensors(cache: GPPosteriorCache) -> dict[str, Tensor]:
-    """One cache's tensors by name: inputs, (K + σ_ε²I)⁻¹, β and θ."""
+    """One cache's tensors by name: inputs, (K + σ_ε²I)⁻¹, β and θ (and a sparse GP's path update factors)."""
     theta = cache.hyperparameters
-    return {
+    tensors = {
         "inputs": cache.inputs,  # n x D
         "K_inv": cache.K_inv,  # E x n x n
         "beta": cache.beta,  # E x n
@@ -28,6 +28,9 @@ def _tensors(cache: GPPosteriorCache) -> dict[str, Tensor]:
         "signal_variance": theta.signal_variance,  # E
         "noise_variance": theta.noise_variance,  # E
     }
+    if cache.prior_inv is not None:  # a sparse GP's: its pathwise update (m inducing inputs as n)
+        tensors |= {"prior_inv": cache.prior_inv, "update_root": cache.update_root}  # E x m x m each
+    return tensors
 
 
 def cache_tensors(model: DynamicsSource) -> dict[str, Tensor]:
@@ -37,9 +40,9 @@ def cache_tensors(model: DynamicsSource) -> dict[str, Tensor]:
     if isinstance(model, GPPosteriorCache):
         return _tensors(model)
     caches = list(model)
-    shapes = {(c.inputs.shape, c.K_inv.shape) for c in caches}
+    shapes = {(c.inputs.shape, c.K_inv.shape, c.prior_inv is None) for c in caches}
     if len(shapes) != 1:
-        raise ValueError(f"stacked GP caches must share n, D and E; got shapes {sorted(shapes)}")
+        raise ValueError(f"stacked GP caches must share n, D, E and kind (exact or sparse); got {sorted(shapes)}")
     per_cache = [_tensors(c) for c in caches]
     return {name: torch.stack([t[name] for t in per_cache]) for name in per_cache[0]}
 

@@ -69,7 +69,6 @@ from torch import Tensor
 from qtl.errors import NonFiniteObjective, UserError
 from qtl.gaussian import Gaussian, matrix_root, sample_moments
 from qtl.kernels import gp_predictive
-from qtl.models import SparseDynamicsGP
 from qtl.policies.base import Policy
 from qtl.propagation.base import DynamicsSource, Rollout
 from qtl.propagation.gp_cache import propagation_inputs
@@ -85,10 +84,6 @@ MIN_PARTICLES = 2
 SQRT_VARIANCE_FLOOR = 1e-30
 # The base noise is drawn in this dtype and then converted to the propagation's.
 NOISE_DTYPE = torch.float64
-# Matheron's update here is the exact GP's, k(x, X)(K + σ_ε²I)⁻¹(y − f̃(X) − ε): a sparse GP's cache (inducing inputs,
-# K_mm⁻¹ − Σ⁻¹) in its place gives functions of the wrong spread (its own update, with q(u), is not built).
-PATHWISE_NEEDS_EXACT = ("propagation.sampling=pathwise draws from the exact GP only: set model=exact or a "
-                        "model.sparse_above at least the run's tuples, or propagation.sampling=marginal")
 # The stream of the Gaussian-resampling noise within a draw (the start and step noise use stream 0).
 RESAMPLING_STREAM = 1
 # The stream of the pathwise functions' random numbers within a draw.
@@ -270,9 +265,6 @@ class Particles:
         if search_cost == "task" and task_search_cost is None:
             raise UserError("propagation.search_cost=task, but the task declares no search_reward: add "
                             "task.search_reward or set propagation.search_cost=widened (or auto)")
-        if sampling == "pathwise" and isinstance(model, SparseDynamicsGP):
-            inducing = model.inducing_points.shape[-2]
-            raise UserError(f"{PATHWISE_NEEDS_EXACT} (the model is sparse, {inducing} inducing inputs)")
         data, self.features, self.dtype = propagation_inputs(model, policy, reward, angle_dims, dtype)
         self.state_dim = self.features.state_dim
         self.policy = policy
@@ -306,6 +298,7 @@ class Particles:
         self._data_sq = self._data.square().sum(-1)  # ... x E x n
         self._beta = data["beta"]
         self._K_inv = data["K_inv"]
+        self._prior_inv, self._update_root = data.get("prior_inv"), data.get("update_root")  # a sparse GP's
         self._signal_variance = data["signal_variance"]
         self._noise_variance = data["noise_variance"]  # ... x E
         self._noise_std = self._noise_variance.sqrt()  # σ_ε: ... x E
@@ -357,7 +350,8 @@ class Particles:
             num_outputs, num_points, input_dim = self._data.shape[-3:]
             features = draw_features(gen, num_outputs, input_dim, num_points, self.num_particles, self.num_features)
             paths = matheron_paths(features, self._data, self._beta, self._K_inv, self._signal_variance,
-                                   self._noise_variance, dtype=self._eval_dtype)
+                                   self._noise_variance, dtype=self._eval_dtype, prior_inv=self._prior_inv,
+                                   update_root=self._update_root)
             self._functions = (draw, paths)
         return self._functions[1]
 
@@ -482,5 +476,6 @@ class Particles:
 def _select_outputs(data: dict[str, Tensor], outputs: Sequence[int]) -> dict[str, Tensor]:
     """The cache's per-output tensors of ``outputs`` only (the shared inputs `... x n x D_in` as they are)."""
     index = torch.tensor(list(outputs), dtype=torch.long, device=data["beta"].device)
-    output_dim = {"K_inv": -3, "beta": -2, "lengthscales": -2, "signal_variance": -1, "noise_variance": -1}
+    output_dim = {"K_inv": -3, "prior_inv": -3, "update_root": -3, "beta": -2, "lengthscales": -2,
+                  "signal_variance": -1, "noise_variance": -1}
     return {k: v.index_select(output_dim[k], index) if k in output_dim else v for k, v in data.items()}

@@ -84,6 +84,8 @@ def matheron_paths(
     signal_variance: Tensor,
     noise_variance: Tensor,
     dtype: torch.dtype | None = None,
+    prior_inv: Tensor | None = None,
+    update_root: Tensor | None = None,
 ) -> MatheronPaths:
     """P posterior functions per output by Matheron's rule (Wilson et al. 2020, Eq. 13).
 
@@ -93,6 +95,9 @@ def matheron_paths(
     (default: ``data``'s). A lower one (float32) also forms the prior sample at the data f̃_p(X) in it (the
     cos and the `n x L` by `L x P` product: well conditioned, a few ulp of Σ_l |W_pl|), while the solve with
     (K + σ_ε²I)⁻¹ stays in ``data``'s dtype and v is cast last. Not differentiable (θ and data fixed).
+    A sparse GP (``data`` its inducing inputs Z, ``prior_inv`` K_mm⁻¹ and ``update_root`` R `... x E x m x m`
+    given): v_p = β − K_mm⁻¹ f̃_p(Z) + R ξ_p (Wilson et al. 2020, Eq. 16: f̃ + k(·, Z) K_mm⁻¹ (u − f̃(Z)), u ~ q(u)),
+    with ``draw``'s update noise as ξ.
     """
     like = {"device": data.device, "dtype": data.dtype}
     dtype = data.dtype if dtype is None else dtype
@@ -104,8 +109,11 @@ def matheron_paths(
     frequencies, phases, weights = (t.to(dtype) for t in (frequencies, phases, weights))
     angle = data.to(dtype) @ frequencies.mT + phases[..., None, :]  # ... x E x n x L
     prior_at_data = (torch.cos(angle) @ weights.mT).to(data.dtype)  # f̃_p(X): ... x E x n x P
-    residual = prior_at_data + noise_variance.sqrt()[..., None, None] * update_noise  # f̃_p(X) + ε_p
-    update = beta[..., :, None] - K_inv @ residual  # v_p = β − (K + σ_ε²I)⁻¹ (f̃_p(X) + ε_p): ... x E x n x P
+    if prior_inv is None:
+        residual = prior_at_data + noise_variance.sqrt()[..., None, None] * update_noise  # f̃_p(X) + ε_p
+        update = beta[..., :, None] - K_inv @ residual  # v_p = β − (K + σ_ε²I)⁻¹ (f̃_p(X) + ε_p): ... x E x n x P
+    else:  # v_p = β − K_mm⁻¹ f̃_p(Z) + R ξ_p: ... x E x m x P
+        update = beta[..., :, None] - prior_inv @ prior_at_data + update_root @ update_noise
     # `... x E x P x n`, row-contiguous, in one copy (the cast, when there is one, included).
     update = update.mT.to(dtype, memory_format=torch.contiguous_format).contiguous()
     return MatheronPaths(frequencies, phases, weights, update)

@@ -20,6 +20,7 @@ from qtl.kernels.exp_sum import backend
 from qtl.models import GPPosteriorCache, SparseDynamicsGP
 from qtl.policies import RBFPolicy, SquashedPolicy
 from qtl.propagation import Particles
+from qtl.propagation.gp_cache import cache_tensors
 from qtl.propagation.particles import PATHWISE_STREAM, _draw_seed
 from qtl.propagation.pathwise import FeatureDraw, MatheronPaths, draw_features, matheron_paths, path_values
 from tests.conftest import make_gp
@@ -28,7 +29,6 @@ from tests.helpers import (
     quadratic_reward,
     squashed_rbf_parts,
     tiny_config,
-    train_config,
 )
 from tests.propagation.restarts import assert_restarts_equal_separate
 
@@ -355,43 +355,74 @@ def _sparse_gp(n: int = 60, inducing: int = 10) -> SparseDynamicsGP:
                             generator=torch.Generator().manual_seed(0))
 
 
-def test_exact_matheron_update_on_a_sparse_cache_would_misstate_the_spread(mc):
-    # Why a sparse model is refused: its cache (Z, K_mm⁻¹ − Σ⁻¹, β) in the exact update gives the right mean but
-    # not the sparse posterior's variance (here 1.1-1.6x too large, beyond the MC error of 200 x 200 functions).
+def sparse_draw_paths(cache: GPPosteriorCache, num_paths: int, num_features: int, seeds: Sequence[int],
+                      sparse_update: bool = True) -> MatheronPaths:
+    """As :func:`draw_paths` for a sparse GP's cache: its own update, or (``sparse_update=False``) the exact one."""
+    theta = cache.hyperparameters
+    data, _, _ = scaled(cache)
+    num_outputs, num_points, input_dim = data.shape
+    draws = [draw_features(torch.Generator().manual_seed(seed), num_outputs, input_dim, num_points, num_paths,
+                           num_features) for seed in seeds]
+    draw = FeatureDraw(*(torch.stack(parts) for parts in zip(*draws, strict=True)))
+    factors = {"prior_inv": cache.prior_inv, "update_root": cache.update_root} if sparse_update else {}
+    return matheron_paths(draw, data, cache.beta, cache.K_inv, theta.signal_variance, theta.noise_variance,
+                          **factors)
+
+
+SPARSE_POINTS = torch.tensor([[0.1, -0.2, 0.3], [0.5, 0.4, -0.6], [-1.0, 0.8, 0.0], [0.12, -0.18, 0.25]],
+                             dtype=DTYPE)
+
+
+def test_sparse_gp_functions_converge_to_its_posterior(mc):
+    # Wilson et al. 2020's sparse form: f̃ + k(·, Z) K_mm⁻¹ (u − f̃(Z)), u ~ q(u). Over draws the functions' mean and
+    # covariance are the SGPR's predictive ones, k(·, Z) β and k(·, ·) − k(·, Z) (K_mm⁻¹ − Σ⁻¹) k(Z, ·) (the
+    # model's own `predict`, checked equal here), within MC error of 300 draws x 200 functions.
+    model = _sparse_gp()
+    cache = model.posterior_cache()
+    mean, cov = exact_posterior(cache, SPARSE_POINTS)  # the cache's formula, at Z with K_mm⁻¹ − Σ⁻¹
+    predicted_mean, predicted_var = model.predict(SPARSE_POINTS)
+    torch.testing.assert_close(mean.mT, predicted_mean, rtol=1e-10, atol=1e-12)
+    torch.testing.assert_close(cov.diagonal(dim1=-2, dim2=-1).mT, predicted_var, rtol=1e-8, atol=1e-12)
+    values = values_at(cache, sparse_draw_paths(cache, 200, 64, seeds=range(300)), SPARSE_POINTS)
+    mc.assert_mean(mean, values.mean(1), "mean over draws")
+    mc.assert_mean(cov, centred_products(values, mean).mean(1), "covariance over draws")
+
+
+def test_the_exact_update_on_a_sparse_cache_misstates_the_spread():
+    # What the sparse factors are for: the exact update given the SGPR's cache (K_mm⁻¹ − Σ⁻¹ as if it were
+    # (K + σ_ε²I)⁻¹) draws functions whose variance is off the model's (here larger at every point and output).
     cache = _sparse_gp().posterior_cache()
-    points = torch.tensor([[0.1, -0.2, 0.3], [0.5, 0.4, -0.6], [-1.0, 0.8, 0.0]], dtype=DTYPE)
-    mean, cov = exact_posterior(cache, points)
-    values = values_at(cache, draw_paths(cache, 200, 64, seeds=range(200)), points)
+    mean, cov = exact_posterior(cache, SPARSE_POINTS)
+    values = values_at(cache, sparse_draw_paths(cache, 200, 64, seeds=range(200), sparse_update=False), SPARSE_POINTS)
     variance = centred_products(values, mean).mean((0, 1)).diagonal(dim1=-2, dim2=-1)
     exact = cov.diagonal(dim1=-2, dim2=-1)
     assert (variance > exact).all() and (variance / exact).mean() > 1.2
 
 
-def test_pathwise_particles_refuse_a_sparse_model(gp_factory):
+def test_pathwise_particles_on_a_sparse_model_draw_its_functions(gp_factory):
+    # The propagator passes the sparse factors on: its functions are matheron_paths' with them, and it rolls out.
     _, policy, reward = squashed_rbf_parts(gp_factory, 2, (), 5, (12, 1))
-    with pytest.raises(UserError, match=r"draws from the exact GP only.*sparse, 10 inducing inputs"):
-        Particles(_sparse_gp(), policy, reward, angle_dims=(), sampling="pathwise")
+    model = _sparse_gp()
+    particles = Particles(model, policy, reward, angle_dims=(), sampling="pathwise", num_features=32,
+                          num_particles=16)
+    cache = model.posterior_cache()
+    data, _, _ = scaled(cache)
+    draw = draw_features(torch.Generator().manual_seed(_draw_seed(particles.seed, 0, PATHWISE_STREAM)), 2, 3, 10, 16,
+                         32)
+    want = matheron_paths(draw, data, cache.beta, cache.K_inv, cache.hyperparameters.signal_variance,
+                          cache.hyperparameters.noise_variance, prior_inv=cache.prior_inv,
+                          update_root=cache.update_root)
+    torch.testing.assert_close(particles.functions(0).update, want.update, rtol=0, atol=0)
+    value = particles.rollout(Gaussian(torch.zeros(2, dtype=DTYPE), 0.01 * torch.eye(2, dtype=DTYPE)), 5, 0).value
+    assert torch.isfinite(value)
 
 
-@pytest.mark.parametrize(("overrides", "refused"), [
-    (["model=sparse"], "model=sparse"),
-    (["episodes=3", "task.horizon=30", "model.sparse_above=100"], "reaches 120 tuples > model.sparse_above=100"),
-    (["episodes=3", "task.horizon=30", "model.sparse_above=120"], None),
-    (["episodes=3", "task.horizon=30", "model.sparse_above=null"], None),
-])
-def test_build_refuses_pathwise_sampling_with_a_model_that_goes_sparse(overrides, refused):
-    cfg = tiny_config("propagation=particles", "propagation.sampling=pathwise", *overrides)
-    if refused is None:
-        build(cfg)
-        return
-    with pytest.raises(UserError, match=refused):
-        build(cfg)
+def test_stacked_caches_must_be_of_one_kind(gp_factory):
+    exact = gp_factory(10, 2, 1, seed=12).posterior_cache()
+    sparse = _sparse_gp(inducing=10).posterior_cache()
+    with pytest.raises(ValueError, match="kind"):
+        cache_tensors([exact, sparse])
 
-
-def test_the_particle_preset_stays_exact_for_its_ten_episodes():
-    build(train_config("task=cartpole_dt005", "recipe=mc_pilco", "episodes=9"))  # 1000 tuples, not above 1000
-    with pytest.raises(UserError, match="reaches 1100 tuples"):
-        build(train_config("task=cartpole_dt005", "recipe=mc_pilco", "episodes=10"))
 
 # -- path_dtype: the drawn functions evaluated in float32 within a float64 rollout ----------------------------
 
