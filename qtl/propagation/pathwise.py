@@ -96,7 +96,7 @@ def matheron_paths(
     cos and the `n x L` by `L x P` product: well conditioned, a few ulp of Σ_l |W_pl|), while the solve with
     (K + σ_ε²I)⁻¹ stays in ``data``'s dtype and v is cast last. Not differentiable (θ and data fixed).
     A sparse GP (``data`` its inducing inputs Z, ``prior_inv`` K_mm⁻¹ and ``update_root`` R `... x E x m x m`
-    given): v_p = β − K_mm⁻¹ f̃_p(Z) + R ξ_p (Wilson et al. 2020, Eq. 16: f̃ + k(·, Z) K_mm⁻¹ (u − f̃(Z)), u ~ q(u)),
+    given): v_p = β − K_mm⁻¹ f̃_p(Z) + R ξ_p (Wilson et al. 2020, sparse GPs: f̃ + k(·, Z) K_mm⁻¹ (u − f̃(Z)), u ~ q(u)),
     with ``draw``'s update noise as ξ.
     """
     like = {"device": data.device, "dtype": data.dtype}
