@@ -44,15 +44,21 @@ def scaled(cache: GPPosteriorCache) -> tuple[Tensor, Tensor, Tensor]:
     return data, data.square().sum(-1), inv_ls
 
 
-def draw_paths(cache: GPPosteriorCache, num_paths: int, num_features: int, seeds: Sequence[int]) -> MatheronPaths:
-    """``num_paths`` Matheron functions per output of ``cache``'s GP per seed, draws stacked: `S x ...`."""
+def draw_paths(cache: GPPosteriorCache, num_paths: int, num_features: int, seeds: Sequence[int],
+               sparse_update: bool = True) -> MatheronPaths:
+    """``num_paths`` Matheron functions per output of ``cache``'s GP per seed, draws stacked: `S x ...`.
+
+    A sparse GP's cache gets its own update, or with ``sparse_update=False`` the exact one.
+    """
     theta = cache.hyperparameters
     data, _, _ = scaled(cache)
     num_outputs, num_points, input_dim = data.shape
     draws = [draw_features(torch.Generator().manual_seed(seed), num_outputs, input_dim, num_points, num_paths,
                            num_features) for seed in seeds]
     draw = FeatureDraw(*(torch.stack(parts) for parts in zip(*draws, strict=True)))
-    return matheron_paths(draw, data, cache.beta, cache.K_inv, theta.signal_variance, theta.noise_variance)
+    factors = {"prior_inv": cache.prior_inv, "update_root": cache.update_root} if sparse_update else {}
+    return matheron_paths(draw, data, cache.beta, cache.K_inv, theta.signal_variance, theta.noise_variance,
+                          **factors)
 
 
 def values_at(cache: GPPosteriorCache, paths: MatheronPaths, points: Tensor) -> Tensor:
@@ -355,20 +361,6 @@ def _sparse_gp(n: int = 60, inducing: int = 10) -> SparseDynamicsGP:
                             generator=torch.Generator().manual_seed(0))
 
 
-def sparse_draw_paths(cache: GPPosteriorCache, num_paths: int, num_features: int, seeds: Sequence[int],
-                      sparse_update: bool = True) -> MatheronPaths:
-    """As :func:`draw_paths` for a sparse GP's cache: its own update, or (``sparse_update=False``) the exact one."""
-    theta = cache.hyperparameters
-    data, _, _ = scaled(cache)
-    num_outputs, num_points, input_dim = data.shape
-    draws = [draw_features(torch.Generator().manual_seed(seed), num_outputs, input_dim, num_points, num_paths,
-                           num_features) for seed in seeds]
-    draw = FeatureDraw(*(torch.stack(parts) for parts in zip(*draws, strict=True)))
-    factors = {"prior_inv": cache.prior_inv, "update_root": cache.update_root} if sparse_update else {}
-    return matheron_paths(draw, data, cache.beta, cache.K_inv, theta.signal_variance, theta.noise_variance,
-                          **factors)
-
-
 SPARSE_POINTS = torch.tensor([[0.1, -0.2, 0.3], [0.5, 0.4, -0.6], [-1.0, 0.8, 0.0], [0.12, -0.18, 0.25]],
                              dtype=DTYPE)
 
@@ -383,7 +375,7 @@ def test_sparse_gp_functions_converge_to_its_posterior(mc):
     predicted_mean, predicted_var = model.predict(SPARSE_POINTS)
     torch.testing.assert_close(mean.mT, predicted_mean, rtol=1e-10, atol=1e-12)
     torch.testing.assert_close(cov.diagonal(dim1=-2, dim2=-1).mT, predicted_var, rtol=1e-8, atol=1e-12)
-    values = values_at(cache, sparse_draw_paths(cache, 200, 64, seeds=range(300)), SPARSE_POINTS)
+    values = values_at(cache, draw_paths(cache, 200, 64, seeds=range(300)), SPARSE_POINTS)
     mc.assert_mean(mean, values.mean(1), "mean over draws")
     mc.assert_mean(cov, centred_products(values, mean).mean(1), "covariance over draws")
 
@@ -393,7 +385,7 @@ def test_the_exact_update_on_a_sparse_cache_misstates_the_spread():
     # (K + σ_ε²I)⁻¹) draws functions whose variance is off the model's (here larger at every point and output).
     cache = _sparse_gp().posterior_cache()
     mean, cov = exact_posterior(cache, SPARSE_POINTS)
-    values = values_at(cache, sparse_draw_paths(cache, 200, 64, seeds=range(200), sparse_update=False), SPARSE_POINTS)
+    values = values_at(cache, draw_paths(cache, 200, 64, seeds=range(200), sparse_update=False), SPARSE_POINTS)
     variance = centred_products(values, mean).mean((0, 1)).diagonal(dim1=-2, dim2=-1)
     exact = cov.diagonal(dim1=-2, dim2=-1)
     assert (variance > exact).all() and (variance / exact).mean() > 1.2
