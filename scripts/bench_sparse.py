@@ -1,12 +1,12 @@
 """Benchmark the model the loop uses as data grow: exact GP up to ``model.sparse_above`` tuples, sparse GP above.
 
-For each n: n real cart-pole transitions (collected as ``bench_policy_search.py`` collects them), the dynamics
-model fitted as the loop fits it (``qtl.build``'s ``Parts.fit_dynamics``, default ``model=auto``; ``model.restarts``
-overridable with ``--restarts``; exact GP for n <= ``model.sparse_above``, SGPR with ``model.inducing`` above),
-then one moment-matching rollout + gradient over the task's horizon with the loop's initial policy (median of
-``--repeats`` after one warm-up). Above the threshold the rollout's cost depends on the inducing inputs, not on
-n: the per-episode policy search stays flat. Writes JSON (default ``docs/bench/sparse.json``) and, unless
-``--no-docs``, its section of ``docs/benchmarks.md``.
+For each n: n real transitions of the task (cart-pole unless ``task=`` is overridden; collected as
+``bench_policy_search.py`` collects them), the dynamics model fitted as the loop fits it (``qtl.build``'s
+``Parts.fit_dynamics``, default ``model=auto``; ``model.restarts`` overridable with ``--restarts``; exact GP for
+n <= ``model.sparse_above``, SGPR with ``model.inducing`` above), then one moment-matching rollout + gradient over
+the task's horizon with the loop's initial policy (median of ``--repeats`` after one warm-up). Above the threshold
+the rollout's cost depends on the inducing inputs, not on n: the per-episode policy search stays flat. Writes JSON
+(default ``docs/bench/sparse.json``) and, unless ``--no-docs``, its section of ``docs/benchmarks.md``.
 
     .venv/bin/python scripts/bench_sparse.py [--sizes 500 1000 2000 4000] [--restarts 1] [--threads 2]
         [--repeats 3] [--overrides OVERRIDE ...] [--output PATH] [--no-docs]
@@ -52,7 +52,7 @@ def measure(n: int, restarts: int, repeats: int, seed: int, overrides: list[str]
         rollout_and_gradient(propagator, start, task.horizon)
         times.append(time.perf_counter() - tic)
     sparse = isinstance(model, SparseDynamicsGP)
-    return {"n": len(data), "model": "sparse" if sparse else "exact",
+    return {"task": task.name, "n": len(data), "model": "sparse" if sparse else "exact",
             "inducing": int(model.inducing_points.shape[0]) if sparse else None, "fit_s": fit_s,
             "fit_restarts": restarts, "rollout_grad_s_median": statistics.median(times),
             "sparse_above": cfg.model.get("sparse_above"), "horizon": task.horizon,
@@ -65,8 +65,9 @@ def markdown(results: list[dict], info: dict) -> str:
         "## Growing data: exact GP, then the sparse GP",
         "",
         f"`{info['command']}` — {info['date']}, {info['machine']['cpu']} ({info['machine']['cores']} cores), "
-        f"{info['threads']} torch threads, torch {info['machine']['torch']}. Cart-pole transitions as in the "
-        "policy-search benchmark; the model fitted as the loop fits it (default `model=auto`, "
+        f"{info['threads']} torch threads, torch {info['machine']['torch']}. Transitions of the "
+        f"{results[0]['task']} task, collected as in the policy-search benchmark; the model fitted as the loop "
+        "fits it (default `model=auto`, "
         f"`model.restarts={info['restarts']}`), exact up to `model.sparse_above` tuples and SGPR with "
         "`model.inducing` learned inducing inputs above; one moment-matching rollout + gradient (H = "
         f"{results[0]['horizon']}, median of the repeats after a warm-up). The peak RSS is the process's so far. "
