@@ -122,8 +122,8 @@ def markdown(tasks: list[dict[str, Any]], rows: list[dict[str, Any]], info: dict
         "| --- | --- | ---: | ---: | --- | ---: | ---: |",
     ]
     for t in tasks:
-        model = f"sparse, m = {t['inducing']}" if t["model"] == "sparse" else "exact"
-        lines.append(f"| {t['task']} | {t['state_dim']}, {t['action_dim']} | {t['horizon']} | {t['n']} | {model} | "
+        lines.append(f"| {t['task']} | {t['state_dim']}, {t['action_dim']} | {t['horizon']} | {t['n']} | "
+                     f"{benchlib.model_label(t)} | "
                      f"{t['fit_s']:.1f} | {t['round_s']:.2f} (R = {t['restarts']}) |")
     lines += [
         "",

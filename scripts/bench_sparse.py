@@ -77,8 +77,7 @@ def markdown(results: list[dict], info: dict) -> str:
         "| ---: | --- | ---: | ---: | ---: |",
     ]
     for r in results:
-        model = f"sparse, m = {r['inducing']}" if r["model"] == "sparse" else "exact"
-        lines.append(f"| {r['n']} | {model} | {r['fit_s']:.1f} | {r['rollout_grad_s_median']:.2f} | "
+        lines.append(f"| {r['n']} | {benchlib.model_label(r)} | {r['fit_s']:.1f} | {r['rollout_grad_s_median']:.2f} | "
                      f"{r['peak_rss_mib']:.0f} |")
     return "\n".join(lines) + "\n"
 

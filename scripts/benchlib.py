@@ -130,6 +130,11 @@ def write_section(name: str, markdown: str) -> None:
     BENCHMARKS_MD.write_text(text)
 
 
+def model_label(row: dict) -> str:
+    """How a result row's dynamics model reads in a table: 'exact' or 'sparse, m = <inducing inputs>'."""
+    return f"sparse, m = {row['inducing']}" if row["model"] == "sparse" else "exact"
+
+
 def mean_std(values: list[float], digits: int = 1) -> str:
     """Mean ± std over seeds ("—" for none, the value alone for one)."""
     if len(values) < 2:
