@@ -24,6 +24,7 @@ import argparse
 import csv
 import json
 import math
+import os
 import sys
 import time
 from pathlib import Path
@@ -147,11 +148,6 @@ def markdown(tasks: list[dict[str, Any]], rows: list[dict[str, Any]], info: dict
     return "\n".join(lines) + "\n"
 
 
-def load_average() -> float:
-    """The 1-minute load average (the machine is shared: figures are read with it)."""
-    return float(Path("/proc/loadavg").read_text().split()[0]) if Path("/proc/loadavg").exists() else float("nan")
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--experiments", nargs="+", choices=EXPERIMENTS, default=list(EXPERIMENTS))
@@ -166,7 +162,7 @@ def main() -> None:
     if any(o.split("=", 1)[0].lstrip("+~") == "sweep.root" for o in overrides):
         parser.error("sweep.root would be shared by every experiment: give --experiments-root DIR (DIR/<name> each)")
     torch.set_num_threads(args.threads)
-    load_before = load_average()
+    load_before = os.getloadavg()[0]
     measured: dict[str, dict[str, Any]] = {}
     rows = []
     for experiment in args.experiments:
@@ -181,7 +177,7 @@ def main() -> None:
     output = args.output.resolve()
     info = {"date": benchlib.today(), "command": benchlib.command_line(), "commit": benchlib.commit(),
             "machine": benchlib.machine(), "threads": args.threads, "repeats": args.repeats, "seed": args.seed,
-            "overrides": overrides, "load_before": load_before, "load_after": load_average(),
+            "overrides": overrides, "load_before": load_before, "load_after": os.getloadavg()[0],
             "output": benchlib.display_path(output)}
     benchlib.write_results(output, {**info, "tasks": list(measured.values())}, rows)
     section = markdown(list(measured.values()), rows, info)
