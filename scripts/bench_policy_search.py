@@ -42,6 +42,7 @@ import sys
 import time
 import traceback
 import warnings
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -344,20 +345,31 @@ def measure(job: dict[str, Any]) -> dict[str, Any]:
     return result
 
 
-def batched_rollout_grad(parts: Parts, model: DynamicsGP, policy: SquashedPolicy, seed: int,
-                         repeats: int) -> dict[str, Any]:
-    """One rollout + gradient of the search's R starting points at once (ψ `R x ...`): median time and R."""
+def batched_round(parts: Parts, model: DynamicsGP, policy: SquashedPolicy,
+                  seed: int) -> tuple[Callable[[], None], int]:
+    """One round of the search as a call: the rollout + gradient of its R starting points at once (ψ `R x ...`); R."""
     states = parts.search.starting_states(policy, torch_generator(seed, SEARCH_EPISODE, SEARCH_STREAM))
     batched = batched_policy(policy, len(states))
     set_psi(batched, stack_psi(states, psi_names(policy)), (len(states),))
     propagator = parts.make_propagator(model, batched, parts.reward, angle_dims=parts.task.angle_dims)
+
+    def round_() -> None:
+        batched.zero_grad()
+        propagator.expected_return(parts.start, parts.task.horizon).sum().backward()
+
+    return round_, len(states)
+
+
+def batched_rollout_grad(parts: Parts, model: DynamicsGP, policy: SquashedPolicy, seed: int,
+                         repeats: int) -> dict[str, Any]:
+    """One rollout + gradient of the search's R starting points at once (ψ `R x ...`): median time and R."""
+    round_, restarts = batched_round(parts, model, policy, seed)
     times = []
     for _ in range(repeats + 1):  # the first is a warm-up
-        batched.zero_grad()
         tic = time.perf_counter()
-        propagator.expected_return(parts.start, parts.task.horizon).sum().backward()
+        round_()
         times.append(time.perf_counter() - tic)
-    return {"batched_rollout_grad_s_median": statistics.median(times[1:]), "batched_restarts": len(states)}
+    return {"batched_rollout_grad_s_median": statistics.median(times[1:]), "batched_restarts": restarts}
 
 
 # What a comparison job adds to a job: the exp-sum backend, whether the restarts are batched, the formulation.

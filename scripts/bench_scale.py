@@ -39,9 +39,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import benchlib
 from bench_policy_search import batched_rollout_grad, collect
 
-from qtl.build import build
+from qtl.build import Parts, build
 from qtl.config import register_configs
-from qtl.models import SparseDynamicsGP
+from qtl.models import DynamicsGP, SparseDynamicsGP
 
 EXPERIMENTS = ("cartpole", "mountaincar", "aircraft")
 STAGES = (("source", "_source"), ("target", ""))
@@ -74,8 +74,11 @@ def episodes_done(stage_dir: Path, episodes: int) -> int:
     return done
 
 
-def measure_task(cfg: DictConfig, repeats: int, seed: int) -> dict[str, Any]:
-    """The model past the sparse threshold (fit time) and one batched search round through it."""
+def stage_model(cfg: DictConfig, seed: int) -> tuple[Parts, DynamicsGP | SparseDynamicsGP, int, float]:
+    """A stage's parts and the model it fits on the task's own transitions just past ``model.sparse_above``: n, fit (s).
+
+    (Without a threshold: the whole run's tuples, on the exact GP.)
+    """
     parts = build(cfg)
     task = parts.task
     threshold = cfg.model.get("sparse_above")
@@ -83,13 +86,24 @@ def measure_task(cfg: DictConfig, repeats: int, seed: int) -> dict[str, Any]:
     data = collect(task, int(cfg.task.policy_size), n, seed)
     tic = time.perf_counter()
     model = parts.fit_dynamics(data, torch.Generator().manual_seed(seed))
-    fit_s = time.perf_counter() - tic
+    return parts, model, len(data), time.perf_counter() - tic
+
+
+def model_facts(model: DynamicsGP | SparseDynamicsGP) -> dict[str, Any]:
+    """Which model a stage fitted: ``model`` ('exact' or 'sparse') and ``inducing`` (m, or None)."""
     sparse = isinstance(model, SparseDynamicsGP)
+    return {"model": "sparse" if sparse else "exact",
+            "inducing": int(model.inducing_points.shape[0]) if sparse else None}
+
+
+def measure_task(cfg: DictConfig, repeats: int, seed: int) -> dict[str, Any]:
+    """The model past the sparse threshold (fit time) and one batched search round through it."""
+    parts, model, n, fit_s = stage_model(cfg, seed)
+    task = parts.task
     policy = parts.initial_policy()
     round_ = batched_rollout_grad(parts, model, policy, seed, repeats)
     return {"task": task.name, "state_dim": task.state_dim, "action_dim": task.action_dim, "horizon": task.horizon,
-            "n": len(data), "model": "sparse" if sparse else "exact",
-            "inducing": int(model.inducing_points.shape[0]) if sparse else None, "fit_s": fit_s,
+            "n": n, **model_facts(model), "fit_s": fit_s,
             "fit_restarts": int(cfg.model.restarts), "round_s": round_["batched_rollout_grad_s_median"],
             "restarts": round_["batched_restarts"], "peak_rss_mib": benchlib.peak_rss_mib()}
 
