@@ -95,7 +95,7 @@ def profile_experiment(preset: str, overrides: list[str], rows: int, seed: int =
 
 
 def main() -> None:
-    """Command line: profile each ``--kernels`` setting in turn."""
+    """Command line: profile each ``--kernels`` setting in turn, or one round of ``--experiment``."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--n", type=int, default=250, help="GP training tuples")
     parser.add_argument("--threads", type=int, default=2, help="torch threads")
