@@ -12,6 +12,7 @@ its runs instead of redoing them. ``--quick`` uses the reduced presets (``<name>
 autopilot's total reward is recorded in ``<root>/experiment.yaml`` as the reference line of Fig. 3,
 and ``qtl.report`` writes ``<root>/report/``.
 Extra arguments are Hydra overrides for both sweeps (e.g. ``sweep.root=... hydra.launcher.n_jobs=4``).
+``--status`` runs nothing: it prints, per stage, every run the sweep plans and the episodes each has made.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ from hydra import compose, initialize_config_module
 
 from qtl.config import register_configs
 from qtl.report import EXPERIMENT_FILE, REPORT_DIR, ExperimentRecord, record_reference, write_report
+from qtl.report.progress import planned_runs, progress_markdown, sweep_progress
 
 EXPERIMENTS = ("cartpole", "mountaincar", "aircraft")
 
@@ -44,9 +46,16 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("experiment", choices=EXPERIMENTS)
     parser.add_argument("--quick", action="store_true", help="the reduced preset (2 seeds, 5 episodes)")
+    parser.add_argument("--status", action="store_true",
+                        help="run nothing: print every planned run and the episodes it has made")
     args, overrides = parser.parse_known_args()
     name = f"{args.experiment}_quick" if args.quick else args.experiment
     root = sweep_root(name, [o for o in overrides if not o.startswith("hydra.")])
+    if args.status:
+        stages = {f"{stage} ({preset})": sweep_progress(planned_runs(preset, overrides))
+                  for stage, preset in (("sources", f"{name}_source"), ("targets", name))}
+        print(f"{root}\n\n{progress_markdown(stages, root)}", end="")
+        return
     commands = [[sys.executable, "-m", "qtl", f"experiment={preset}", *overrides] for preset in
                 (f"{name}_source", name)]
     root.mkdir(parents=True, exist_ok=True)

@@ -11,6 +11,7 @@ import pytest
 import yaml
 
 from qtl.report import ExperimentRecord, autopilot_return
+from qtl.report.progress import planned_runs, sweep_progress
 from tests.helpers import BUDGET
 from tests.report.fakes import write_run
 
@@ -55,6 +56,20 @@ def test_repeated_sweep_continues_instead_of_redoing(quick_cartpole):
                            capture_output=True, text=True, timeout=600, cwd=root.parent)
     assert again.returncode == 0, again.stderr[-3000:]
     assert {p: p.stat().st_mtime_ns for p in root.glob("target/*/*/seed_*/checkpoints/*.pt")} == before
+
+
+def test_status_names_every_run_the_real_multirun_made_and_finds_them_finished(quick_cartpole):
+    root, _ = quick_cartpole
+    made = sorted(p.parent for p in root.glob("*/**/.hydra"))
+    planned = planned_runs("cartpole_quick_source", [*TINY, f"sweep.root={root}"]) + planned_runs(
+        "cartpole_quick", [*TINY, f"sweep.root={root}"])
+    assert sorted(r.run_dir for r in planned) == made
+    assert all(p.finished and p.done == 2 for p in sweep_progress(planned))
+    status = subprocess.run([sys.executable, str(ROOT / "scripts" / "run_experiment.py"), "cartpole", "--quick",
+                             "--status", *TINY, f"sweep.root={root}"], capture_output=True, text=True, timeout=300)
+    assert status.returncode == 0, status.stderr[-3000:]
+    assert "**sources (cartpole_quick_source)**: 2 of 2 runs finished" in status.stdout
+    assert "**targets (cartpole_quick)**: 4 of 4 runs finished" in status.stdout
 
 
 def test_report_of_the_sweep(quick_cartpole):
