@@ -1,16 +1,24 @@
-"""Learning runs as subprocesses of the real CLI, reused when finished and resumed when interrupted."""
+"""Learning runs as subprocesses of the real CLI, reused when finished and resumed when interrupted; a sweep's runs."""
 
 from __future__ import annotations
 
+import itertools
 import subprocess
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 import yaml
+from hydra import compose, initialize_config_module
+from hydra.core.hydra_config import HydraConfig
+from hydra.core.override_parser.overrides_parser import OverridesParser
+from omegaconf import DictConfig, OmegaConf
 
 from qtl.checkpoint import episodes_done
-from qtl.errors import RunMismatch
+from qtl.config import register_configs
+from qtl.errors import RunMismatch, UserError
+from qtl.report.progress import PlannedRun
 
 # Overrides that do not change what a run computes (``episodes`` only says how far it goes: runs
 # are causal, so a run extended by resuming equals one made longer from the start; ``resume`` and
@@ -50,3 +58,64 @@ def ensure_run(overrides: list[str], run_dir: Path, episodes: int, *, threads: i
     if done.returncode != 0:
         raise RuntimeError(f"run {run_dir} failed:\n{done.stderr[-3000:]}")
     return time.perf_counter() - start
+
+
+def _sweep_params(cfg: DictConfig, overrides: Sequence[str]) -> dict[str, str]:
+    """The preset's swept keys and values, with the command line's overrides of the same keys (or new sweeps) in."""
+    params = {str(k): str(v) for k, v in (cfg.hydra.sweeper.params or {}).items()}
+    parser = OverridesParser.create()
+    for text in overrides:
+        override = parser.parse_override(text)
+        key = override.get_key_element()
+        if override.is_sweep_override() or key in params:
+            params[key] = text.split("=", 1)[1]
+    return params
+
+
+def planned_runs(preset: str, overrides: Sequence[str] = ()) -> list[PlannedRun]:
+    """Every run of the multirun ``qtl-train experiment=<preset> <overrides>``, in the sweeper's order.
+
+    Config-group choices (e.g. ``approach``) are composed once per combination, plain values (``seed``,
+    ``task.env.pole_mass``) set on that config, and ``hydra.sweep.dir/subdir`` resolved as Hydra does.
+    """
+    register_configs()
+    hydra_config = HydraConfig.instance()
+    previous = hydra_config.cfg  # resolving `${hydra:...}` sets Hydra's global config: restored below
+    try:
+        return _planned_runs(preset, overrides)
+    finally:
+        hydra_config.cfg = previous
+
+
+def _planned_runs(preset: str, overrides: Sequence[str]) -> list[PlannedRun]:
+    """``planned_runs``, Hydra's global config left set to the last run's."""
+    parser = OverridesParser.create()
+    fixed = [o for o in overrides if not parser.parse_override(o).is_sweep_override()]
+    with initialize_config_module(config_module="qtl.configs", version_base="1.3"):
+        base = compose(config_name="train", overrides=[f"experiment={preset}", *fixed], return_hydra_config=True)
+        params = _sweep_params(base, overrides)
+        if not params:
+            raise UserError(f"experiment={preset} sweeps nothing (no hydra.sweeper.params): it is a single run")
+        groups = set(base.hydra.runtime.choices)
+        swept = []  # per swept key, its overrides in the sweeper's order
+        for key, value in params.items():
+            override = parser.parse_override(f"{key}={value}")
+            values = list(override.sweep_string_iterator()) if override.is_sweep_override() else [value]
+            swept.append([f"{key}={v}" for v in values])
+        composed: dict[tuple[str, ...], DictConfig] = {}
+        runs = []
+        for combo in itertools.product(*swept):
+            chosen = tuple(o for o in combo if o.split("=", 1)[0] in groups)
+            if chosen not in composed:
+                composed[chosen] = compose(config_name="train",
+                                           overrides=[f"experiment={preset}", *fixed, *chosen],
+                                           return_hydra_config=True)
+            cfg = composed[chosen].copy()
+            for override in combo:
+                if override not in chosen:
+                    key = override.split("=", 1)[0]
+                    OmegaConf.update(cfg, key, parser.parse_override(override).value(), force_add=True)
+            HydraConfig.instance().set_config(cfg)
+            run_dir = Path(str(cfg.hydra.sweep.dir)) / str(cfg.hydra.sweep.subdir)
+            runs.append(PlannedRun(run_dir=run_dir, overrides=tuple(combo), episodes=int(cfg.episodes) + 1))
+    return runs

@@ -27,8 +27,9 @@ from pathlib import Path
 from hydra import compose, initialize_config_module
 
 from qtl.config import register_configs
+from qtl.launch import planned_runs
 from qtl.report import EXPERIMENT_FILE, REPORT_DIR, ExperimentRecord, record_reference, write_report
-from qtl.report.progress import planned_runs, progress_markdown, sweep_progress
+from qtl.report.progress import progress_markdown, sweep_progress
 
 EXPERIMENTS = ("cartpole", "mountaincar", "aircraft")
 

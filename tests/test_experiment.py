@@ -10,8 +10,9 @@ from pathlib import Path
 import pytest
 import yaml
 
+from qtl.launch import planned_runs
 from qtl.report import ExperimentRecord, autopilot_return
-from qtl.report.progress import planned_runs, sweep_progress
+from qtl.report.progress import sweep_progress
 from tests.helpers import BUDGET
 from tests.report.fakes import write_run
 
