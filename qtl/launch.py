@@ -115,7 +115,7 @@ def _planned_runs(preset: str, overrides: Sequence[str]) -> list[PlannedRun]:
                 if override not in chosen:
                     key = override.split("=", 1)[0]
                     OmegaConf.update(cfg, key, parser.parse_override(override).value(), force_add=True)
-            HydraConfig.instance().set_config(cfg)
+            HydraConfig.instance().set_config(cfg)  # `${hydra:runtime.choices.*}` in subdir reads it
             run_dir = Path(str(cfg.hydra.sweep.dir)) / str(cfg.hydra.sweep.subdir)
             runs.append(PlannedRun(run_dir=run_dir, overrides=tuple(combo), episodes=int(cfg.episodes) + 1))
     return runs

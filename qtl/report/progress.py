@@ -57,7 +57,7 @@ def sweep_progress(runs: Sequence[PlannedRun]) -> list[RunProgress]:
     """What each planned run has made so far (0 episodes for a run not begun)."""
     found = []
     for run in runs:
-        done = min(episodes_done(run.run_dir), run.episodes) if run.run_dir.is_dir() else 0
+        done = min(episodes_done(run.run_dir), run.episodes)  # 0 where the directory does not exist yet
         found.append(RunProgress(run=run, done=done, seconds=_recorded_seconds(run.run_dir, done)))
     return found
 
