@@ -19,7 +19,13 @@ from hydra.core.config_store import ConfigStore
 from omegaconf import II, MISSING, DictConfig, OmegaConf
 
 from qtl.errors import UserError
-from qtl.models.fitting import DEFAULT_INDUCING, DEFAULT_MAX_ITER, DEFAULT_RESTARTS, DEFAULT_SPARSE_ABOVE
+from qtl.models.fitting import (
+    DEFAULT_INDUCING,
+    DEFAULT_JITTER,
+    DEFAULT_MAX_ITER,
+    DEFAULT_RESTARTS,
+    DEFAULT_SPARSE_ABOVE,
+)
 from qtl.propagation.particles import DEFAULT_NUM_FEATURES
 from qtl.task import DEFAULT_START_MIN_STD
 
@@ -33,6 +39,7 @@ BATCHED_HELP = ("all restarts at once: one batched rollout evaluates every runni
                 "own optimiser (L-BFGS: the sequential run, in lockstep) (false: one restart after the other)")
 SPACE_HELP = "log | natural: the space θ is handled in"
 INDUCING_HELP = "inducing inputs of the sparse GP (PILCO's FITC uses ~300)"
+INDUCING_JITTER_HELP = "the sparse GP's jitter on K_mm's diagonal, a fraction of α² (0: none)"
 
 
 def doc(text: str) -> dict[str, str]:
@@ -392,6 +399,7 @@ class SparseModelConfig(ModelConfig):
 
     _target_: str = "qtl.models.SparseFit"
     inducing: int = field(default=DEFAULT_INDUCING, metadata=doc(INDUCING_HELP))
+    inducing_jitter: float = field(default=DEFAULT_JITTER, metadata=doc(INDUCING_JITTER_HELP))
 
 
 @dataclass
@@ -403,6 +411,7 @@ class AutoModelConfig(ModelConfig):
         default=DEFAULT_SPARSE_ABOVE, metadata=doc("more tuples than this: the sparse GP (null: always exact)"),
     )
     inducing: int = field(default=DEFAULT_INDUCING, metadata=doc(INDUCING_HELP))
+    inducing_jitter: float = field(default=DEFAULT_JITTER, metadata=doc(INDUCING_JITTER_HELP))
 
 
 # The group options and their schemas: `configs/<group>/<option>.yaml` names `<option>_schema` first.
@@ -422,6 +431,11 @@ LEGACY_DEFAULTS = {
     "model": {"warm_start": False},
     "optimizer": {"batched": False},
     "kernels": {"backend": "torch", "moments": "reference"},
+}
+# The same for one option's keys: the sparse GP's K_mm had no jitter before `model.inducing_jitter` existed.
+LEGACY_OPTION_DEFAULTS: dict[str, dict[str, Any]] = {
+    SparseModelConfig._target_: {"inducing_jitter": 0.0},
+    AutoModelConfig._target_: {"inducing_jitter": 0.0},
 }
 
 
@@ -448,8 +462,12 @@ def typed_groups(cfg: DictConfig) -> DictConfig:
                     node[key] = value
     for group in GROUP_SCHEMAS:
         node = cfg.get(group)
-        schema = None if node is None else SCHEMA_BY_TARGET.get(node.get("_target_", LEGACY_TARGETS.get(group)))
+        target = None if node is None else node.get("_target_", LEGACY_TARGETS.get(group))
+        schema = SCHEMA_BY_TARGET.get(target)
         if schema is not None:
+            for key, value in LEGACY_OPTION_DEFAULTS.get(target, {}).items():
+                if key not in node:
+                    node[key] = value
             cfg[group] = OmegaConf.merge(OmegaConf.structured(schema), node)
     return cfg
 

@@ -102,7 +102,18 @@ def test_a_config_stored_before_the_model_group_reads_as_model_auto():
     legacy["model"] = {"restarts": 1, "max_iter": 5, "sparse_above": 10, "inducing": 6}  # no `_target_`
     cfg = typed_groups(OmegaConf.create(legacy))
     assert cfg.model._target_ == "qtl.models.AutoFit"
-    assert build(cfg).model == AutoFit(restarts=1, max_iter=5, sparse_above=10, inducing=6)  # warm_start: false
+    assert build(cfg).model == AutoFit(restarts=1, max_iter=5, sparse_above=10, inducing=6,  # warm_start: false
+                                       inducing_jitter=0.0)  # (K_mm had no jitter then)
+
+
+def test_a_config_stored_before_the_inducing_jitter_reads_as_none():
+    """A sparse or auto model node stored without `inducing_jitter` ran with K_mm unjittered: it reads 0."""
+    for option in ("auto", "sparse"):
+        stored = OmegaConf.to_container(tiny_config(f"model={option}"), resolve=True)
+        del stored["model"]["inducing_jitter"]
+        assert typed_groups(OmegaConf.create(stored)).model.inducing_jitter == 0.0
+        assert typed_groups(tiny_config(f"model={option}")).model.inducing_jitter == 1e-6
+    assert "inducing_jitter" not in typed_groups(tiny_config("model=exact")).model
 
 
 def test_a_config_stored_before_the_fast_defaults_reads_with_the_old_values():

@@ -11,7 +11,7 @@ from torch import Tensor
 
 from qtl.models.dynamics_gp import DEFAULT_MAX_ITER, DEFAULT_RESTARTS, DynamicsGP
 from qtl.models.hyperparameters import GPHyperparameters
-from qtl.models.sparse_gp import DEFAULT_INDUCING, SparseDynamicsGP
+from qtl.models.sparse_gp import DEFAULT_INDUCING, DEFAULT_JITTER, SparseDynamicsGP
 from qtl.models.warm_start import PreviousFit
 
 log = logging.getLogger(__name__)
@@ -49,10 +49,12 @@ def _check_fit_budget(restarts: int, max_iter: int) -> None:
         raise ValueError(f"model.max_iter must be >= 1, got {max_iter}")
 
 
-def _check_inducing(inducing: int) -> None:
-    """The sparse GP needs at least one inducing input."""
+def _check_inducing(inducing: int, jitter: float) -> None:
+    """The sparse GP needs at least one inducing input, and a jitter >= 0."""
     if inducing < 1:
         raise ValueError(f"model.inducing must be >= 1, got {inducing}")
+    if not jitter >= 0:
+        raise ValueError(f"model.inducing_jitter must be >= 0 (a fraction of α², e.g. 1e-6), got {jitter}")
 
 
 @dataclass(frozen=True)
@@ -99,16 +101,20 @@ def _warm_from(previous: PreviousFit | None, inputs: Tensor) -> PreviousFit | No
 
 @dataclass(frozen=True)
 class SparseFit:
-    """The sparse GP (SGPR) at every data size, with ``inducing`` inducing inputs learned with θ."""
+    """The sparse GP (SGPR) at every data size, with ``inducing`` inducing inputs learned with θ.
+
+    ``inducing_jitter``: K_mm's diagonal jitter as a fraction of α² (:class:`SparseDynamicsGP`).
+    """
 
     restarts: int = DEFAULT_RESTARTS
     max_iter: int = DEFAULT_MAX_ITER
     inducing: int = DEFAULT_INDUCING
     warm_start: bool = False
+    inducing_jitter: float = DEFAULT_JITTER
 
     def __post_init__(self) -> None:
         _check_fit_budget(self.restarts, self.max_iter)
-        _check_inducing(self.inducing)
+        _check_inducing(self.inducing, self.inducing_jitter)
 
     def fit(
         self,
@@ -125,7 +131,7 @@ class SparseFit:
         where the data only grew and the number of inducing inputs is the same (:meth:`SparseDynamicsGP.fit_warm`).
         """
         model = SparseDynamicsGP(inputs, targets, hyperparameters=start, num_inducing=self.inducing,
-                                 generator=generator, dtype=inputs.dtype)
+                                 generator=generator, jitter=self.inducing_jitter, dtype=inputs.dtype)
         warm = _warm_from(previous, inputs) if self.warm_start else None
         if warm is not None:
             inducing = warm.inducing if warm.num_points <= len(inputs) else None  # data only grew
@@ -145,10 +151,11 @@ class AutoFit:
     sparse_above: int | None = DEFAULT_SPARSE_ABOVE
     inducing: int = DEFAULT_INDUCING
     warm_start: bool = False
+    inducing_jitter: float = DEFAULT_JITTER
 
     def __post_init__(self) -> None:
         _check_fit_budget(self.restarts, self.max_iter)
-        _check_inducing(self.inducing)
+        _check_inducing(self.inducing, self.inducing_jitter)
         if self.sparse_above is not None and self.sparse_above < 0:
             raise ValueError(f"model.sparse_above must be >= 0 or null, got {self.sparse_above}")
 
@@ -165,7 +172,8 @@ class AutoFit:
         if self.sparse_above is not None and len(inputs) > self.sparse_above:
             log.info("%d tuples > model.sparse_above=%d: the sparse GP, %d inducing inputs", len(inputs),
                      self.sparse_above, min(self.inducing, len(inputs)))
-            chosen: ModelFit = SparseFit(self.restarts, self.max_iter, self.inducing, self.warm_start)
+            chosen: ModelFit = SparseFit(self.restarts, self.max_iter, self.inducing, self.warm_start,
+                                         self.inducing_jitter)
         else:
             chosen = ExactFit(self.restarts, self.max_iter, self.warm_start)
         return chosen.fit(inputs, targets, start=start, generator=generator, previous=previous)

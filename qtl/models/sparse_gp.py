@@ -13,7 +13,13 @@ Prediction (Eq. 1-2 with the inducing inputs), per output a, with Σ = K_mm + σ
 
 which is the exact GP's form with (Z, β, K_mm⁻¹ − Σ⁻¹) in place of (X, β, (K + σ²I)⁻¹): the
 posterior cache has that form, so moment matching and particles run through it unchanged, at
-O(m²) per step. With Z = X the model is the exact GP.
+O(m²) per step. With Z = X (and no jitter) the model is the exact GP.
+
+K_mm carries a fixed jitter δ = ``jitter`` · α² on its diagonal, in the bound and the prediction
+alike (the inducing values u observed with variance δ). Without it, learned Z that crowd the
+input space at the learned lengthscales make K_mm singular to working precision (eigenvalues
+~1e-17 of α² on a fitted mountain car, m = 300), so K_mm⁻¹ − Σ⁻¹ reaches ~1e15 and the cached
+variance cancels to noise (off by ~10⁴ σ_ε²). With δ = 1e-6 α², ‖K_mm⁻¹‖ <= 1e6 / α².
 """
 
 from __future__ import annotations
@@ -25,6 +31,7 @@ from collections.abc import Iterator
 
 import gpytorch
 import torch
+from linear_operator import to_dense
 from linear_operator.utils.cholesky import psd_safe_cholesky
 from linear_operator.utils.errors import NotPSDError
 from torch import Tensor
@@ -46,6 +53,45 @@ log = logging.getLogger(__name__)
 
 # Inducing inputs by default (PILCO's FITC uses about 300 pseudo-inputs).
 DEFAULT_INDUCING = 300
+# K_mm's diagonal jitter as a fraction of the signal variance α² (GPflow's default jitter is 1e-6 on unit-scale data).
+DEFAULT_JITTER = 1e-6
+
+
+def jittered_inducing_covariance(k_mm: Tensor, signal_variance: Tensor, jitter: float) -> Tensor:
+    """K_mm + jitter · α² I per output: `E x m x m` from K_mm `E x m x m` and α² `E`."""
+    if jitter == 0:
+        return k_mm
+    eye = torch.eye(k_mm.shape[-1], dtype=k_mm.dtype, device=k_mm.device)
+    return k_mm + (jitter * signal_variance)[..., None, None] * eye
+
+
+class JitteredInducingPointKernel(gpytorch.kernels.InducingPointKernel):
+    """GPyTorch's SGPR kernel with K_mm + ``jitter`` · α² I in place of K_mm (its bound and predictions).
+
+    The base kernel must be a ``ScaleKernel`` (α² is its outputscale, `E`).
+    """
+
+    def __init__(self, base_kernel: gpytorch.kernels.ScaleKernel, inducing_points: Tensor,
+                 likelihood: gpytorch.likelihoods.Likelihood, *, jitter: float = DEFAULT_JITTER) -> None:
+        if not jitter >= 0:
+            raise ValueError(f"jitter must be >= 0, got {jitter}")
+        super().__init__(base_kernel, inducing_points=inducing_points, likelihood=likelihood)
+        self.jitter = float(jitter)
+
+    @property
+    def _inducing_mat(self) -> Tensor:
+        if not self.training and hasattr(self, "_cached_kernel_mat"):
+            return self._cached_kernel_mat
+        k_mm = to_dense(self.base_kernel(self.inducing_points, self.inducing_points))
+        res = jittered_inducing_covariance(k_mm, self.base_kernel.outputscale, self.jitter)
+        if not self.training:
+            self._cached_kernel_mat = res
+        return res
+
+    def __deepcopy__(self, memo: dict) -> JitteredInducingPointKernel:
+        copied = super().__deepcopy__(memo)
+        copied.jitter = self.jitter
+        return copied
 
 
 @contextlib.contextmanager
@@ -63,7 +109,8 @@ class SparseDynamicsGP(DynamicsGP):
     """Δ = x_{t+1} − x_t by SGPR with m inducing inputs shared by the E outputs (Eq. 1-3, sparse).
 
     ``inducing_points``: Z `m x D` (default: ``num_inducing`` training inputs drawn without
-    replacement by ``generator``; all of them when n <= m). Everything else as
+    replacement by ``generator``; all of them when n <= m); ``jitter``: δ / α² on K_mm's
+    diagonal (0: none, the model of Titsias 2009 as written). Everything else as
     :class:`~qtl.models.DynamicsGP`: θ get/set, priors, fit, predict, posterior_cache.
     """
 
@@ -76,6 +123,7 @@ class SparseDynamicsGP(DynamicsGP):
         num_inducing: int = DEFAULT_INDUCING,
         inducing_points: Tensor | None = None,
         generator: torch.Generator | None = None,
+        jitter: float = DEFAULT_JITTER,
         dtype: torch.dtype = torch.float64,
     ) -> None:
         super().__init__(train_x, train_y, hyperparameters, dtype=dtype)
@@ -87,8 +135,8 @@ class SparseDynamicsGP(DynamicsGP):
             inducing_points = self.train_x[chosen.to(self.train_x.device)]
         if inducing_points.dim() != 2 or inducing_points.shape[-1] != self.input_dim:
             raise ValueError(f"inducing_points must be `m x {self.input_dim}`, got {tuple(inducing_points.shape)}")
-        self.covar_module = gpytorch.kernels.InducingPointKernel(
-            self.covar_module, inducing_points=inducing_points.to(self.train_x).clone(), likelihood=self.likelihood
+        self.covar_module = JitteredInducingPointKernel(
+            self.covar_module, inducing_points.to(self.train_x).clone(), self.likelihood, jitter=jitter
         )
         self.to(dtype=dtype, device=self.train_x.device)
 
@@ -97,6 +145,11 @@ class SparseDynamicsGP(DynamicsGP):
         """The kernel of Eq. 3 inside the inducing-point kernel (before wrapping: the kernel itself)."""
         kernel = self.covar_module
         return kernel.base_kernel if isinstance(kernel, gpytorch.kernels.InducingPointKernel) else kernel
+
+    @property
+    def jitter(self) -> float:
+        """δ / α²: K_mm's diagonal jitter as a fraction of the signal variance."""
+        return self.covar_module.jitter
 
     def evidence_settings(self) -> contextlib.AbstractContextManager[None]:
         """Exact, structured evaluation of the collapsed bound (Titsias 2009) in O(n m²).
@@ -203,12 +256,13 @@ class SparseDynamicsGP(DynamicsGP):
         return self.fit_objective
 
     def _factors(self) -> tuple[Tensor, Tensor, Tensor]:
-        """L_m (chol K_mm), A = L_m⁻¹ K_mn / σ and L_B (chol of B = I + A Aᵀ), per output."""
+        """L_m (chol of K_mm + δI), A = L_m⁻¹ K_mn / σ and L_B (chol of B = I + A Aᵀ), per output."""
         theta = self.hyperparameters
         z = self.inducing_points
         kernel = self.scale_kernel
         with torch.no_grad(), exact_gp_settings():
             k_mm = kernel(z.expand(self.num_outputs, *z.shape)).to_dense()  # E x m x m
+            k_mm = jittered_inducing_covariance(k_mm, theta.signal_variance, self.jitter)
             k_mn = kernel(z.expand(self.num_outputs, *z.shape), self.train_inputs[0]).to_dense()  # E x m x n
             chol_m = psd_safe_cholesky(k_mm)
             a = torch.linalg.solve_triangular(chol_m, k_mn, upper=False) / theta.noise_variance.sqrt()[:, None, None]

@@ -86,6 +86,19 @@ def test_bad_sparse_settings_fail_when_the_option_is_made():
         SparseFit(inducing=0)
     with pytest.raises(ValueError, match=r"model\.sparse_above must be >= 0 or null"):
         AutoFit(sparse_above=-1)
+    for kind in (SparseFit, AutoFit):
+        with pytest.raises(ValueError, match=r"model\.inducing_jitter must be >= 0"):
+            kind(inducing_jitter=-1e-6)
+
+
+def test_the_sparse_fits_pass_their_jitter_to_the_model(gp_factory):
+    gp = gp_factory(30, 2, 1, seed=3)
+    model = SparseFit(restarts=1, max_iter=2, inducing=8, inducing_jitter=1e-3).fit(
+        gp.train_x, gp.train_y, generator=torch.Generator().manual_seed(0))
+    assert model.jitter == 1e-3
+    model = AutoFit(restarts=1, max_iter=2, sparse_above=10, inducing=8, inducing_jitter=0.0).fit(
+        gp.train_x, gp.train_y, generator=torch.Generator().manual_seed(0))
+    assert model.jitter == 0.0
 
 
 def test_log_evidence_is_the_mean_over_outputs_and_leaves_the_model_in_eval_mode(pairs):

@@ -1,15 +1,18 @@
-"""The sparse GP (SGPR): equal to the exact GP when Z = X, close with fewer inducing inputs, and
-moment matching through its cache against Monte Carlo."""
+"""The sparse GP (SGPR): equal to the exact GP when Z = X, close with fewer inducing inputs, its
+K_mm jitter in bound and prediction alike, and moment matching through its cache against Monte Carlo."""
 
 from __future__ import annotations
+
+import math
 
 import gpytorch
 import pytest
 import torch
+from torch import Tensor
 
 from qtl.gaussian import Gaussian
 from qtl.kernels import SEKernelMoments
-from qtl.models import DynamicsGP, SparseDynamicsGP
+from qtl.models import DynamicsGP, GPHyperparameters, SparseDynamicsGP
 from qtl.models.dynamics_gp import exact_gp_settings
 from qtl.policies import LinearPolicy, SquashedPolicy
 from qtl.propagation import MomentMatching
@@ -27,8 +30,9 @@ def exact(gp_factory) -> DynamicsGP:
 
 @pytest.fixture(scope="module")
 def twin(exact) -> SparseDynamicsGP:
-    """The sparse model with the training inputs as inducing inputs and the same θ."""
-    return SparseDynamicsGP(exact.train_x, exact.train_y, exact.hyperparameters, inducing_points=exact.train_x)
+    """The sparse model with the training inputs as inducing inputs, the same θ and no jitter on K_mm."""
+    return SparseDynamicsGP(exact.train_x, exact.train_y, exact.hyperparameters, inducing_points=exact.train_x,
+                            jitter=0.0)
 
 
 def test_inducing_inputs_at_the_training_inputs_give_the_exact_gp(exact, twin):
@@ -129,8 +133,125 @@ def test_compliance_and_leave_one_out_of_a_sparse_model_use_its_exact_twin(exact
     assert task_compliance(exact, twin).value == pytest.approx(task_compliance(exact, exact).value, abs=1e-9)
 
 
+def _dense_sgpr(model: SparseDynamicsGP, x: Tensor, jitter: float) -> tuple[Tensor, Tensor, Tensor]:
+    """Predictive mean and variance `E x k` at ``x``, and K_nm (K_mm + δI)⁻¹ K_mn `E x n x n`, from the SGPR
+    formulas with plain dense solves (Titsias 2009; δ = ``jitter`` · α²): the reference for the model's own."""
+    theta, z, kernel = model.hyperparameters, model.inducing_points, model.scale_kernel
+    e, m = model.num_outputs, z.shape[0]
+    with torch.no_grad():
+        k_mm = kernel(z.expand(e, *z.shape)).to_dense() + (jitter * theta.signal_variance)[:, None, None] * torch.eye(
+            m, dtype=DTYPE)
+        k_mn = kernel(z.expand(e, *z.shape), model.train_x.expand(e, *model.train_x.shape)).to_dense()
+        k_mx = kernel(z.expand(e, *z.shape), x.expand(e, *x.shape)).to_dense()
+    noise = theta.noise_variance[:, None, None]
+    sigma = noise * k_mm + k_mn @ k_mn.mT  # σ² Σ
+    y = model.train_y.T[..., None]  # E x n x 1
+    mean = (k_mx.mT @ torch.linalg.solve(sigma, k_mn @ y)).squeeze(-1)
+    var = (theta.signal_variance[:, None] - (k_mx * torch.linalg.solve(k_mm, k_mx)).sum(-2)
+           + (k_mx * torch.linalg.solve(sigma / noise, k_mx)).sum(-2))
+    return mean, var, k_mn.mT @ torch.linalg.solve(k_mm, k_mn)
+
+
+def test_the_jitter_is_on_k_mm_in_the_bound_and_in_the_prediction(exact):
+    # A jitter large enough to move everything (1e-2 of α²): the model's prediction, and the covariance its
+    # bound is made of, are the SGPR's with K_mm + δI, checked against dense solves of the formulas.
+    jitter = 1e-2
+    sparse = SparseDynamicsGP(exact.train_x, exact.train_y, exact.hyperparameters, num_inducing=15,
+                              generator=torch.Generator().manual_seed(2), jitter=jitter)
+    assert sparse.jitter == jitter
+    x = torch.randn(20, exact.input_dim, generator=torch.Generator().manual_seed(3), dtype=DTYPE)
+    mean, var, q_nn = _dense_sgpr(sparse, x, jitter)
+    got_mean, got_var = sparse.predict(x)
+    torch.testing.assert_close(got_mean, mean.T, rtol=1e-8, atol=1e-10)
+    torch.testing.assert_close(got_var, var.T, rtol=1e-6, atol=1e-10)
+    _, _, q_plain = _dense_sgpr(sparse, x, 0.0)
+    assert (q_nn - q_plain).abs().max() > 1e-3 * float(exact.hyperparameters.signal_variance.min())  # δ shows
+    sparse.train()
+    with torch.no_grad():
+        torch.testing.assert_close(sparse.covar_module(sparse.train_x).to_dense(), q_nn, rtol=1e-8, atol=1e-12)
+        # The bound with δ minus the bound without it, against the same difference by hand (the priors cancel).
+        plain = SparseDynamicsGP(exact.train_x, exact.train_y, exact.hyperparameters,
+                                 inducing_points=sparse.inducing_points, jitter=0.0)
+        plain.train()
+        n = exact.train_x.shape[0]
+
+        def bound(q: Tensor) -> Tensor:
+            cov = q + exact.hyperparameters.noise_variance[:, None, None] * torch.eye(n, dtype=DTYPE)
+            y = exact.train_y.T
+            fit = torch.distributions.MultivariateNormal(torch.zeros_like(y), covariance_matrix=cov).log_prob(y)
+            trace = (exact.hyperparameters.signal_variance * n - q.diagonal(dim1=-2, dim2=-1).sum(-1))
+            return (fit - 0.5 * trace / exact.hyperparameters.noise_variance) / n
+
+        torch.testing.assert_close(sparse.log_evidence() - plain.log_evidence(), bound(q_nn) - bound(q_plain),
+                                   rtol=1e-6, atol=1e-10)
+
+
+@pytest.fixture(scope="module")
+def crowded() -> tuple[Tensor, Tensor, GPHyperparameters]:
+    """Inputs `400 x 3`, targets `400 x 2` and θ where 150 inducing inputs crowd the space at the lengthscales.
+
+    As on a fitted mountain car: two inputs span a few lengthscales, the third is irrelevant (lengthscale 10
+    over [-1, 1]), and the noise is ~1e-7 of α², so K_mm is singular to working precision.
+    """
+    gen = torch.Generator().manual_seed(0)
+    x = torch.cat([torch.rand(400, 2, generator=gen, dtype=DTYPE) * torch.tensor([1.0, 0.1], dtype=DTYPE),
+                   2 * torch.rand(400, 1, generator=gen, dtype=DTYPE) - 1], -1)
+    y = torch.stack([0.1 * torch.sin(3 * x[:, 0]) + x[:, 1], 0.5 * x[:, 1] + 0.01 * x[:, 2]], -1)
+    theta = GPHyperparameters(lengthscales=torch.tensor([[0.6, 0.06, 10.0]] * 2, dtype=DTYPE),
+                              signal_variance=torch.tensor([1e-2, 1e-3], dtype=DTYPE),
+                              noise_variance=torch.tensor([1e-9, 1e-10], dtype=DTYPE))
+    return x, y, theta
+
+
+def test_the_jitter_keeps_the_cached_variance_accurate_when_inducing_inputs_crowd(crowded):
+    # The cache form α² − k (K_mm⁻¹ − Σ⁻¹) kᵀ (what moment matching and particles use) against the whitened
+    # form α² − ‖L⁻¹k‖² + ‖L_B⁻¹L⁻¹k‖² (dense, no K_mm⁻¹ formed), both with the model's δ. Without a jitter
+    # the cache holds entries ~1e14 and its variance is off by thousands of σ_ε² (measured 4.1e3, 4.5e3);
+    # with the default (1e-6 of α²), by ~1e-2 σ_ε².
+    x, y, theta = crowded
+    x_check = x[:50] + 0.01 * torch.randn(50, 3, generator=torch.Generator().manual_seed(1), dtype=DTYPE)
+    errors = {}
+    for jitter in (0.0, None):
+        kwargs = {} if jitter is None else {"jitter": jitter}
+        model = SparseDynamicsGP(x, y, theta, num_inducing=150, generator=torch.Generator().manual_seed(1), **kwargs)
+        delta = model.jitter * theta.signal_variance
+        z, kernel = model.inducing_points, model.scale_kernel
+        with torch.no_grad():
+            k_mm = kernel(z.expand(2, *z.shape)).to_dense() + delta[:, None, None] * torch.eye(150, dtype=DTYPE)
+            k_mn = kernel(z.expand(2, *z.shape), x.expand(2, *x.shape)).to_dense()
+            k_mx = kernel(z.expand(2, *z.shape), x_check.expand(2, *x_check.shape)).to_dense()
+        chol = torch.linalg.cholesky(k_mm)
+        a = torch.linalg.solve_triangular(chol, k_mn, upper=False) / theta.noise_variance.sqrt()[:, None, None]
+        chol_b = torch.linalg.cholesky(torch.eye(150, dtype=DTYPE) + a @ a.mT)
+        v1 = torch.linalg.solve_triangular(chol, k_mx, upper=False)
+        v2 = torch.linalg.solve_triangular(chol_b, v1, upper=False)
+        whitened = theta.signal_variance[:, None] - v1.square().sum(-2) + v2.square().sum(-2)
+        _, var = model.predict(x_check)
+        errors[jitter] = ((var.T - whitened.clamp_min(0)).abs().amax(-1) / theta.noise_variance).max()
+        if jitter == 0.0:
+            assert model.posterior_cache().K_inv.abs().max() > 1e12  # the problem is as ill-conditioned as meant
+    assert errors[0.0] > 100 and errors[None] < 0.1, errors
+
+
+def test_moment_matching_through_a_crowded_sparse_model_against_monte_carlo(crowded, mc, posterior):
+    x, y, theta = crowded
+    model = SparseDynamicsGP(x, y, theta, num_inducing=150, generator=torch.Generator().manual_seed(1))
+    cache = model.posterior_cache()
+    state = Gaussian(torch.tensor([0.5, 0.05, 0.0], dtype=DTYPE), torch.diag(torch.tensor([0.01, 1e-4, 0.1],
+                                                                                             dtype=DTYPE)))
+    result = SEKernelMoments(cache.inputs, cache.beta, theta.lengthscales, theta.signal_variance, cache.K_inv)(state)
+    gen = torch.Generator().manual_seed(2)
+    samples = state.sample(100_000, generator=gen)
+    mean, var = posterior(cache, samples)
+    assert (var > -1e-3 * theta.noise_variance).all()  # the cache's variance is a variance (no cancellation)
+    assert math.isfinite(float(result.cov.sum()))
+    mc.assert_moments(result, samples, mean, conditional_var=var)
+
+
 def test_bad_inducing_inputs_are_refused(exact):
     with pytest.raises(ValueError, match="inducing_points must be"):
         SparseDynamicsGP(exact.train_x, exact.train_y, inducing_points=torch.zeros(5, 2, dtype=DTYPE))
     with pytest.raises(ValueError, match="num_inducing must be >= 1"):
         SparseDynamicsGP(exact.train_x, exact.train_y, num_inducing=0)
+    with pytest.raises(ValueError, match="jitter must be >= 0"):
+        SparseDynamicsGP(exact.train_x, exact.train_y, num_inducing=5, jitter=-1e-6)
