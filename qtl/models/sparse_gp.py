@@ -284,11 +284,18 @@ class SparseDynamicsGP(DynamicsGP):
             # β = σ⁻² Σ⁻¹ K_mn y = L_m⁻ᵀ B⁻¹ A y / σ.
             ay = (a @ self.train_targets[..., None]) / noise_std[:, None, None]  # E x m x 1
             beta = torch.linalg.solve_triangular(chol_m.mT, torch.cholesky_solve(ay, chol_b), upper=True)
-            # Pathwise samples (Wilson et al. 2020, sparse form): f = f̃ + k(·, Z) K_mm⁻¹ (u − f̃(Z)), u ~ q(u), i.e.
-            # v = β − K_mm⁻¹ f̃(Z) + R ξ with R Rᵀ = K_mm⁻¹ S_u K_mm⁻¹ = Σ⁻¹ = L_m⁻ᵀ B⁻¹ L_m⁻¹: R = L_m⁻ᵀ L_B⁻ᵀ.
+            # Pathwise samples (Wilson et al. 2020, sparse form): f = f̃ + k(·, Z) K_mm⁻¹ (u − f̃(Z) − ε̃), u ~ q(u),
+            # ε̃ ~ N(0, δI) the inducing values' jitter (K_mm here is K_mm + δI), i.e. v = β − K_mm⁻¹ f̃(Z) + R ξ with
+            # R Rᵀ = K_mm⁻¹ S_u K_mm⁻¹ + δ K_mm⁻² = Σ⁻¹ + δ K_mm⁻² = L_m⁻ᵀ (B⁻¹ + δ L_m⁻¹ L_m⁻ᵀ) L_m⁻¹.
+            # No jitter: R = L_m⁻ᵀ L_B⁻ᵀ; else R = L_m⁻ᵀ G, G Gᵀ = B⁻¹ + δ L_m⁻¹ L_m⁻ᵀ (eigenvalues in (0, 2]).
             prior_inv = torch.cholesky_inverse(chol_m)
-            root_b = torch.linalg.solve_triangular(chol_b.mT, eye.expand_as(chol_b), upper=True)  # L_B⁻ᵀ
-            update_root = torch.linalg.solve_triangular(chol_m.mT, root_b, upper=True)
+            if self.jitter == 0:
+                root = torch.linalg.solve_triangular(chol_b.mT, eye.expand_as(chol_b), upper=True)  # L_B⁻ᵀ
+            else:
+                chol_m_inv = torch.linalg.solve_triangular(chol_m, eye.expand_as(chol_m), upper=False)  # L_m⁻¹
+                delta = (self.jitter * self.hyperparameters.signal_variance)[:, None, None]
+                root = psd_safe_cholesky(torch.cholesky_inverse(chol_b) + delta * (chol_m_inv @ chol_m_inv.mT))
+            update_root = torch.linalg.solve_triangular(chol_m.mT, root, upper=True)
         return GPPosteriorCache(inputs=self.inducing_points, K_inv=k_inv, beta=beta.squeeze(-1),
                                 hyperparameters=self.hyperparameters, prior_inv=0.5 * (prior_inv + prior_inv.mT),
                                 update_root=update_root)
