@@ -277,7 +277,8 @@ class SparseDynamicsGP(DynamicsGP):
         eye = torch.eye(a.shape[-2], dtype=a.dtype, device=a.device)
         with torch.no_grad():
             # Σ = L_m B L_mᵀ, so K_mm⁻¹ − Σ⁻¹ = L_m⁻ᵀ (I − B⁻¹) L_m⁻¹ (I − B⁻¹ is PSD: B >= I).
-            middle = eye - torch.cholesky_inverse(chol_b)
+            b_inv = torch.cholesky_inverse(chol_b)
+            middle = eye - b_inv
             left = torch.linalg.solve_triangular(chol_m.mT, middle, upper=True)  # L_m⁻ᵀ (I − B⁻¹)
             k_inv = torch.linalg.solve_triangular(chol_m.mT, left.mT, upper=True).mT
             k_inv = 0.5 * (k_inv + k_inv.mT)
@@ -294,7 +295,7 @@ class SparseDynamicsGP(DynamicsGP):
             else:
                 chol_m_inv = torch.linalg.solve_triangular(chol_m, eye.expand_as(chol_m), upper=False)  # L_m⁻¹
                 delta = (self.jitter * self.hyperparameters.signal_variance)[:, None, None]
-                root = psd_safe_cholesky(torch.cholesky_inverse(chol_b) + delta * (chol_m_inv @ chol_m_inv.mT))
+                root = psd_safe_cholesky(b_inv + delta * (chol_m_inv @ chol_m_inv.mT))
             update_root = torch.linalg.solve_triangular(chol_m.mT, root, upper=True)
         return GPPosteriorCache(inputs=self.inducing_points, K_inv=k_inv, beta=beta.squeeze(-1),
                                 hyperparameters=self.hyperparameters, prior_inv=0.5 * (prior_inv + prior_inv.mT),
