@@ -361,6 +361,8 @@ class DynamicsGP(gpytorch.models.ExactGP):
                 log.warning("cold restarts failed: %s", err)
                 part_value = torch.full_like(value[chosen], -math.inf)
             better = torch.isfinite(part_value) & (part_value > value[chosen])
+            log.info("cold restarts: the cold fit kept for output(s) %s, the warm fit for %s",
+                     chosen[better].tolist(), chosen[~better].tolist())
             if part is self and better.all():  # the cold fit won everywhere: keep its θ as it left it
                 return part_value
             best[chosen[better]] = part.hyperparameters.log()[better]

@@ -253,6 +253,11 @@ class SparseDynamicsGP(DynamicsGP):
             with torch.no_grad():
                 self.covar_module.inducing_points.copy_(warm[2])
             self.fit_objective = warm[3]
+            log.info("cold restarts: the warm sparse GP fit kept (%.4f >= %s per point)", total,
+                     "a failed cold fit" if cold_value is None else f"{float(cold_value.sum()):.4f}")
+        else:
+            log.info("cold restarts: the cold sparse GP fit kept (%.4f > %.4f per point)",
+                     float(cold_value.sum()), total)
         return self.fit_objective
 
     def _factors(self) -> tuple[Tensor, Tensor, Tensor]:
