@@ -20,7 +20,7 @@ NONFINITE = "nonfinite_objectives"  # policy-search evaluations whose predicted 
 LINALG = "linalg_failures"  # evaluations whose propagation failed in a factorisation (torch.linalg.LinAlgError)
 SEARCH_STOPPED = "search_runs_stopped"  # policy-search runs (restarts) ended early at a numerically invalid ψ
 JITTER = "cholesky_jitter"  # Cholesky factorisations retried with jitter on the diagonal (recovered, or not)
-GP_FIT_FAILED = "gp_fit_failures"  # GP-fit restarts (or warm starts) that failed and were discarded
+GP_FIT_FAILED = "gp_fit_failures"  # GP-fit runs discarded, or resumed after a failed line-search step
 EVENTS = (NONFINITE, LINALG, SEARCH_STOPPED, JITTER, GP_FIT_FAILED)
 JITTER_MESSAGE = "added jitter"  # in linear_operator's warning "A not p.d., added jitter of ... to the diagonal"
 

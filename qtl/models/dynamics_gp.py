@@ -52,6 +52,8 @@ DEFAULT_RESTARTS = 3
 DEFAULT_MAX_ITER = 100
 # L-BFGS stops when the objective (log evidence per data point) changes by less than this.
 FIT_TOLERANCE_CHANGE = 1e-6
+# L-BFGS runs resumed from the best θ after a trial θ of the line search failed numerically, per fit run.
+FIT_RESUMES = 2
 # Standard deviation of the log-space perturbation of θ at each extra restart.
 RESTART_LOG_SCALE = 0.5
 # Warm start: an output whose warm objective (log evidence per point) falls more than this below the
@@ -375,22 +377,50 @@ class DynamicsGP(gpytorch.models.ExactGP):
         return value
 
     def _optimise(self, max_iter: int) -> Tensor:
-        """One L-BFGS run on the summed objective; returns the per-output objective `E`."""
+        """L-BFGS on the summed objective for at most ``max_iter`` iterations; returns the per-output objective `E`.
+
+        A trial θ of the line search whose objective fails numerically (a factorisation error, or a
+        non-finite value; e.g. a step to ℓ ~ e⁻²⁰⁰ on a flat direction) does not end the run: the θ of
+        the best objective evaluated is restored and a fresh L-BFGS (its first step short) goes on with
+        the iterations left, at most ``FIT_RESUMES`` times. A failure before any finite objective raises.
+        """
         self.train()
         self.likelihood.train()
         params = [p for p in self.parameters() if p.requires_grad]
-        optimiser = torch.optim.LBFGS(
-            params, lr=1.0, max_iter=max_iter, line_search_fn="strong_wolfe",
-            tolerance_change=FIT_TOLERANCE_CHANGE,
-        )
+        best: list = [-math.inf, None]  # the best summed objective evaluated, and its parameters
 
         def closure() -> Tensor:
             optimiser.zero_grad()
-            loss = -self.log_evidence().sum()
-            loss.backward()
-            return loss
+            total = self.log_evidence().sum()
+            if not torch.isfinite(total):
+                raise RuntimeError(f"the log evidence is not finite ({float(total.detach())})")
+            (-total).backward()
+            if float(total.detach()) > best[0]:
+                best[0], best[1] = float(total.detach()), [p.detach().clone() for p in params]
+            return -total
 
-        optimiser.step(closure)
+        left = max_iter
+        for resume in range(FIT_RESUMES + 1):
+            optimiser = torch.optim.LBFGS(
+                params, lr=1.0, max_iter=left, line_search_fn="strong_wolfe",
+                tolerance_change=FIT_TOLERANCE_CHANGE,
+            )
+            try:
+                optimiser.step(closure)
+                break
+            except (NotPSDError, ValueError, RuntimeError) as err:
+                if best[1] is None:
+                    raise
+                left -= optimiser.state[params[0]].get("n_iter", 0)
+                health.count(health.GP_FIT_FAILED)
+                with torch.no_grad():
+                    for param, value in zip(params, best[1], strict=True):
+                        param.copy_(value)
+                if resume == FIT_RESUMES or left <= 0:
+                    log.warning("GP fit: a line-search step failed (%s); it ends at the best θ evaluated", err)
+                    break
+                log.warning("GP fit: a line-search step failed (%s); L-BFGS resumes from the best θ evaluated "
+                            "(%d iterations left)", err, left)
         with torch.no_grad():
             value = self.log_evidence()
         self.eval()

@@ -26,7 +26,7 @@ EVENT_NAMES = {
     "linalg_failures": "failed factorisations in a rollout",
     "search_runs_stopped": "policy-search runs stopped early at an invalid ψ",
     "cholesky_jitter": "Cholesky factorisations retried with jitter",
-    "gp_fit_failures": "GP-fit restarts failed and discarded",
+    "gp_fit_failures": "GP-fit failures (a restart discarded, or L-BFGS resumed from its best θ)",
 }
 
 

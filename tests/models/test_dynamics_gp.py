@@ -7,9 +7,11 @@ import math
 
 import pytest
 import torch
+from linear_operator.utils.errors import NotPSDError
 
+from qtl import health
 from qtl.models import DynamicsGP, GPHyperparameters, exact_gp_settings
-from qtl.models.dynamics_gp import NOISE_VARIANCE_MIN
+from qtl.models.dynamics_gp import FIT_RESUMES, NOISE_VARIANCE_MIN
 
 
 def smooth_function(x: torch.Tensor) -> torch.Tensor:
@@ -58,6 +60,74 @@ def test_fit_does_not_lower_the_objective():
         before = model.log_evidence()
     after = model.fit(restarts=2, max_iter=30, generator=torch.Generator().manual_seed(0))
     assert (after >= before - 1e-9).all()
+
+
+def failing_evidence(model: DynamicsGP, fails: set[int] | None = None, after: int | None = None, nan: bool = False):
+    """Make the line search's evaluations (with gradient) numbered in ``fails``, or all past ``after``, fail."""
+    calls = {"n": 0}
+    evidence = model.log_evidence
+
+    def evaluate() -> torch.Tensor:
+        if torch.is_grad_enabled():
+            calls["n"] += 1
+            if calls["n"] in (fails or set()) or (after is not None and calls["n"] > after):
+                if nan:
+                    return evidence() * math.nan
+                raise NotPSDError("a trial θ whose covariance is not positive definite")
+        return evidence()
+
+    model.log_evidence = evaluate  # the instance attribute shadows the method
+    return calls
+
+
+@pytest.mark.parametrize("nan", [False, True], ids=["factorisation_error", "nan_objective"])
+def test_a_failed_line_search_step_resumes_from_the_best_theta(nan):
+    # A trial θ that fails (as a step to ℓ ~ e⁻²¹⁵ did in a mountain-car fit) costs neither the run nor the
+    # optimum: the run goes on from the best θ evaluated and ends where an unfailing run ends.
+    x, y = make_data(80, 0.1, seed=3)
+    reference = DynamicsGP(x, y)
+    expected = reference._optimise(100)
+    model = DynamicsGP(x, y)
+    calls = failing_evidence(model, fails={4, 9}, nan=nan)
+    health.take()
+    value = model._optimise(100)
+    assert calls["n"] > 9
+    assert health.take()[health.GP_FIT_FAILED] == 2
+    assert torch.isfinite(value).all()
+    assert (value - expected).abs().max() < 1e-4, (value, expected)
+
+
+def test_a_line_search_failing_for_good_ends_at_the_best_theta_evaluated():
+    x, y = make_data(80, 0.1, seed=3)
+    model = DynamicsGP(x, y)
+    model.train()
+    with torch.no_grad():
+        start = model.log_evidence().sum()
+    seen = []
+    evidence = model.log_evidence
+
+    def recording() -> torch.Tensor:
+        value = evidence()
+        if torch.is_grad_enabled():
+            seen.append(float(value.sum()))
+        return value
+
+    model.log_evidence = recording
+    failing_evidence(model, after=5)
+    health.take()
+    value = model._optimise(100)
+    assert health.take()[health.GP_FIT_FAILED] == FIT_RESUMES + 1
+    best = max(seen[:5])
+    assert best > float(start)
+    assert float(value.sum()) == pytest.approx(best, abs=1e-9)
+
+
+def test_a_failure_before_any_finite_objective_is_raised():
+    x, y = make_data(40, 0.1, seed=3)
+    model = DynamicsGP(x, y)
+    failing_evidence(model, fails={1})
+    with pytest.raises(NotPSDError):
+        model._optimise(50)
 
 
 @pytest.mark.parametrize("include_noise", [False, True])
