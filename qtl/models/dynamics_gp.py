@@ -392,11 +392,12 @@ class DynamicsGP(gpytorch.models.ExactGP):
         def closure() -> Tensor:
             optimiser.zero_grad()
             total = self.log_evidence().sum()
-            if not torch.isfinite(total):
-                raise RuntimeError(f"the log evidence is not finite ({float(total.detach())})")
+            value = float(total.detach())
+            if not math.isfinite(value):
+                raise RuntimeError(f"the log evidence is not finite ({value})")
             (-total).backward()
-            if float(total.detach()) > best[0]:
-                best[0], best[1] = float(total.detach()), [p.detach().clone() for p in params]
+            if value > best[0]:
+                best[0], best[1] = value, [p.detach().clone() for p in params]
             return -total
 
         left = max_iter

@@ -63,8 +63,11 @@ def test_fit_does_not_lower_the_objective():
 
 
 def failing_evidence(model: DynamicsGP, fails: set[int] | None = None, after: int | None = None, nan: bool = False):
-    """Make the line search's evaluations (with gradient) numbered in ``fails``, or all past ``after``, fail."""
-    calls = {"n": 0}
+    """Make the line search's evaluations (with gradient) numbered in ``fails``, or all past ``after``, fail.
+
+    Returns the count of those evaluations (``"n"``) and the summed objectives of the ones that succeeded.
+    """
+    calls = {"n": 0, "values": []}
     evidence = model.log_evidence
 
     def evaluate() -> torch.Tensor:
@@ -74,6 +77,9 @@ def failing_evidence(model: DynamicsGP, fails: set[int] | None = None, after: in
                 if nan:
                     return evidence() * math.nan
                 raise NotPSDError("a trial θ whose covariance is not positive definite")
+            value = evidence()
+            calls["values"].append(float(value.sum()))
+            return value
         return evidence()
 
     model.log_evidence = evaluate  # the instance attribute shadows the method
@@ -103,21 +109,11 @@ def test_a_line_search_failing_for_good_ends_at_the_best_theta_evaluated():
     model.train()
     with torch.no_grad():
         start = model.log_evidence().sum()
-    seen = []
-    evidence = model.log_evidence
-
-    def recording() -> torch.Tensor:
-        value = evidence()
-        if torch.is_grad_enabled():
-            seen.append(float(value.sum()))
-        return value
-
-    model.log_evidence = recording
-    failing_evidence(model, after=5)
+    calls = failing_evidence(model, after=5)
     health.take()
     value = model._optimise(100)
     assert health.take()[health.GP_FIT_FAILED] == FIT_RESUMES + 1
-    best = max(seen[:5])
+    best = max(calls["values"][:5])
     assert best > float(start)
     assert float(value.sum()) == pytest.approx(best, abs=1e-9)
 
