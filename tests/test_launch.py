@@ -23,11 +23,14 @@ def test_full_scale_cartpole_plans_4_targets_x_5_seeds_x_7_approaches(tmp_path):
     runs = planned_runs("cartpole", [f"sweep.root={tmp_path}"])
     assert len(runs) == 4 * 5 * 7
     assert len({r.run_dir for r in runs}) == len(runs)
-    # The sweeper's order: pole mass outermost, approaches innermost.
+    # The sweeper's order: seeds outermost, then the pole mass, approaches innermost.
     assert runs[0].run_dir == tmp_path / "target" / "pilco" / "m0.8" / "seed_0"
     assert runs[1].run_dir == tmp_path / "target" / "hyperparameters_transfer" / "m0.8" / "seed_0"
+    assert runs[7].run_dir == tmp_path / "target" / "pilco" / "m1.0" / "seed_0"
+    assert runs[27].run_dir == tmp_path / "target" / "policy_transfer" / "m2.0" / "seed_0"
+    assert runs[28].run_dir == tmp_path / "target" / "pilco" / "m0.8" / "seed_1"
     assert runs[-1].run_dir == tmp_path / "target" / "policy_transfer" / "m2.0" / "seed_4"
-    assert runs[0].overrides == ("task.env.pole_mass=0.8", "seed=0", "approach=pilco")
+    assert runs[0].overrides == ("seed=0", "task.env.pole_mass=0.8", "approach=pilco")
     assert {r.episodes for r in runs} == {25}  # the preset's 24 learned episodes and the initial one
 
 
