@@ -14,6 +14,7 @@ from torch import Tensor
 from qtl.errors import UserError
 from qtl.gaussian import Gaussian
 from qtl.kernels import SEKernelMoments, exp_sum, weighted_exp_sum
+from qtl.kernels.native import exp_sum as native_exp_sum
 from qtl.kernels.native import library as native_library
 
 DTYPE = torch.float64
@@ -291,3 +292,80 @@ def test_backend_context_restores_the_previous_choice(built):
         with exp_sum.backend("native") as name:
             assert name == exp_sum.active_backend() == "native"
         assert exp_sum.active_backend() == "torch"
+
+
+# The lower form (`qtl_exp_sum_forward_lower`, used by se_moments.c for its a = b pairs): when S = A Bᵀ is
+# symmetric, Σ_{j<i} (W_ij + W_ji) E_ij + Σ_i W_ii E_ii is the same sum from half the entries.
+
+
+def symmetric_problem(items: int, n: int, k: int, seed: int) -> tuple[Tensor, ...]:
+    """X `items x n x k`, M `items x k x k` symmetric, A = X M, B = X (S = X M Xᵀ symmetric), W not symmetric."""
+    gen = torch.Generator().manual_seed(seed)
+    x = 0.3 * torch.randn(items, n, k, generator=gen, dtype=DTYPE)
+    root = torch.randn(items, k, k, generator=gen, dtype=DTYPE) / k**0.5
+    m = 0.5 * (root + root.mT)
+    w = torch.randn(items, n, n, generator=gen, dtype=DTYPE)
+    return x, m, x @ m, x, w
+
+
+def library_forward(a: Tensor, b: Tensor, w: Tensor, lower: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
+    """The library's sums, G_A and G_B for dense batches `items x ...` (items visited in order)."""
+    batch = a.shape[:-2]
+    offsets = (*(native_exp_sum.item_offsets(t, batch) for t in (a, b, w)), torch.arange(batch.numel()))
+    return native_library.load_exp_sum().forward(a, b, w, offsets, (True, True), lower)
+
+
+def max_relative(got: Tensor, want: Tensor) -> float:
+    """max |got − want| over max |want|."""
+    return float((got - want).abs().max() / want.abs().max())
+
+
+# n: one entry, below a row block, across the column chunk (128), the row split (256) and both.
+@pytest.mark.parametrize("n", [1, 2, 7, 9, 128, 129, 257, 300, 520])
+def test_lower_form_is_the_full_sum_with_the_same_chain_rule(built, n):
+    x, m, a, b, w = symmetric_problem(3, n, 6, seed=n)
+    flags = torch.tensor([True, False, True])
+    full, full_a, full_b = library_forward(a, b, w)
+    low, low_a, low_b = library_forward(a, b, w, flags)
+    # An item not flagged: the full form, bit for bit.
+    assert torch.equal(low[1], full[1]) and torch.equal(low_a[1], full_a[1]) and torch.equal(low_b[1], full_b[1])
+    lower = flags.nonzero().squeeze(-1)
+    e = torch.exp(a @ b.mT)
+    scale = (w.abs() * e).sum((-2, -1))
+    assert ((low - full).abs() / scale)[lower].max() <= RTOL
+    # G_A, G_B of the lower form: P = (W + Wᵀ) ∘ E below the diagonal, W ∘ E on it, 0 above.
+    p = torch.tril((w + w.mT) * e, -1) + torch.diag_embed(torch.diagonal(w * e, dim1=-2, dim2=-1))
+    assert max_relative(low_a[lower], (p @ b)[lower]) <= RTOL
+    assert max_relative(low_b[lower], (p.mT @ a)[lower]) <= RTOL
+    # Not the full form's G_A, G_B (n > 1), but through A = X M, B = X the same gradients for X and
+    # for M's symmetric part (the perturbations that keep S symmetric).
+    if n > 1:
+        assert max_relative(low_a[lower], full_a[lower]) > 1e-3
+    grad_x = (full_a @ m.mT + full_b)[lower]
+    assert max_relative((low_a @ m.mT + low_b)[lower], grad_x) <= RTOL
+    grad_m, low_grad_m = (x.mT @ g for g in (full_a, low_a))
+    assert max_relative((low_grad_m + low_grad_m.mT)[lower], (grad_m + grad_m.mT)[lower]) <= RTOL
+
+
+def test_lower_form_is_bit_identical_across_thread_counts(built):
+    *_, a, b, w = symmetric_problem(2, 520, 8, seed=3)  # three row splits
+    flags = torch.tensor([True, True])
+    threads = torch.get_num_threads()
+    try:
+        results = []
+        for count in (1, 2, 3):
+            torch.set_num_threads(count)
+            results.append(library_forward(a, b, w, flags))
+    finally:
+        torch.set_num_threads(threads)
+    for first, *others in zip(*results, strict=True):
+        assert all(torch.equal(first, other) for other in others)
+
+
+def test_lower_form_needs_square_weights(built):
+    a, b, w = operands(((2,), (2,), (2,), 5, 6, 3), 7)
+    with pytest.raises(ValueError, match="square weights"):
+        library_forward(a, b, w, torch.tensor([False, True]))
+    with pytest.raises(ValueError, match="one flag per item"):
+        library_forward(a, b, w, torch.tensor([True]))
+    library_forward(a, b, w, torch.tensor([False, False]))  # no lower item: any n, m

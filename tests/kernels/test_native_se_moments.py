@@ -304,3 +304,47 @@ def test_rollout_native_equals_fused(library, gp_factory, restarts, models):
     for p, g, w in zip(psi, grads_native, grads_fused, strict=True):
         assert g.shape == p.shape and w.abs().max() > 0
         assert_rel_close(g, w, "∂V/∂ψ", rtol=ROLLOUT_RTOL)
+
+
+def native_outputs_and_grads(leaves, k_inv, probes) -> list[torch.Tensor]:
+    """(mean, cov, gain) of the native moments and the gradients of Σ probe·output for every leaf that needs one."""
+    outs, grads = outputs_and_grads(leaves, k_inv, "native", probes)
+    return [*outs, *grads]
+
+
+@pytest.mark.parametrize(("num_out", "dim", "num", "state_batch", "const_batch"), SHAPES)
+@pytest.mark.parametrize("weights_grad", [True, False], ids=["recompute", "fused"])
+def test_lower_pair_sums_equal_the_full_sums(library, num_out, dim, num, state_batch, const_batch, weights_grad):
+    """The a = b pairs' exp sums from their lower triangles (the default) against every pair's full sum."""
+    leaves, k_inv = make_problem(num_out, dim, num, state_batch, const_batch, seed=3 * num + dim)
+    leaves["beta"].requires_grad_(weights_grad)  # β enters the weights: with it, backward recomputes the sums
+    gen = torch.Generator().manual_seed(num)
+    with formulation("native"):
+        shapes = [o.shape for o in outputs_and_grads(leaves, k_inv, "native", None)[0]]
+    probes = [torch.randn(s, generator=gen, dtype=DTYPE) for s in shapes]
+    lower = native_outputs_and_grads(leaves, k_inv, probes)
+    with se_moments.full_pairs():
+        full = native_outputs_and_grads(leaves, k_inv, probes)
+    assert len(lower) == len(full) == 3 + 5 + weights_grad
+    for i, (got, want) in enumerate(zip(lower, full, strict=True)):
+        assert_rel_close(got, want, f"output or gradient {i}", rtol=RTOL)
+
+
+def test_rollout_lower_pair_sums_equal_the_full_sums(library, gp_factory):
+    """V and ∂V/∂ψ of a rollout on a 4-output GP with n = 300 (the sparse GP's size), restarts in lockstep."""
+    gp = gp_factory(300, 4, 1, (1,), seed=5)
+    policy = spread_restarts(make_policy("rbf", 5), 2)  # features: 4 states, the angle as sin and cos
+    propagator = MomentMatching(gp, policy, quadratic_reward(4, (1,)), angle_dims=(1,))
+    gen = torch.Generator().manual_seed(6)
+    root = 0.3 * torch.randn(4, 4, generator=gen, dtype=DTYPE)
+    start = Gaussian(0.3 * torch.randn(4, generator=gen, dtype=DTYPE), root @ root.T + 0.01 * torch.eye(4, dtype=DTYPE))
+    psi = list(policy.parameters())
+    with formulation("native"):
+        lower = propagator.expected_return(start, 4)
+        with se_moments.full_pairs():
+            full = propagator.expected_return(start, 4)
+    assert_rel_close(lower, full, "V", rtol=ROLLOUT_RTOL)
+    for p, got, want in zip(psi, torch.autograd.grad(lower.sum(), psi), torch.autograd.grad(full.sum(), psi),
+                            strict=True):
+        assert got.shape == p.shape and want.abs().max() > 0
+        assert_rel_close(got, want, "∂V/∂ψ", rtol=ROLLOUT_RTOL)

@@ -10,6 +10,13 @@
  *             G_A[i]       = sum_j W_ij E_ij B_j,   G_B[j] = sum_i W_ij E_ij A_i     (K-vectors)
  * and the backward pass is then dL/dA = g_b G_A, dL/dB = g_b G_B, without recomputing E. When W
  * needs a gradient, E is needed in backward: qtl_exp_sum_backward recomputes it, as above.
+ * Lower items, forward only (qtl_exp_sum_forward_lower; n = m): when S is symmetric (any W),
+ *             s_b          = sum_{j<i} (W_ij + W_ji) E_ij + sum_i W_ii E_ii
+ * is the same sum from the lower triangle, about half the entries. G_A and G_B are then the gradients
+ * of this lower form (P_ij = (W_ij + W_ji) E_ij below the diagonal, W_ii E_ii on it, 0 above): not the
+ * full G_A and G_B, but wherever A(θ) and B(θ) keep S symmetric for every θ the chain rule through
+ * both gives the same dL/dθ, so a caller that builds A and B so (the a = b pairs of se_moments.c) may
+ * use them; dL/dW (qtl_exp_sum_backward) is the full form's, E_ij, equal to the lower form's then.
  * The plain-torch reference twin is `qtl.kernels.exp_sum._WeightedExpSum`.
  *
  * Layout: every matrix is row-major and contiguous in its last two dimensions; batch item b of
@@ -108,6 +115,7 @@ struct scratch {
     double *a_row; /* `BLOCK_ROWS x kp`: the block of A, padded rows and K 0 */
     double *g_a;   /* `BLOCK_ROWS x kp`: the block's G_A over the chunk */
     double *e;     /* `BLOCK_ROWS x cols`: S, then E, then P = W E (cols = the chunk's padded width) */
+    double *w_t;   /* `BLOCK_ROWS x CHUNK_COLS`: a lower item's W_ji for the block's rows i, chunk's j */
 };
 
 static double *alloc_aligned(int64_t count)
@@ -126,7 +134,8 @@ static int alloc_scratch(struct scratch *sc, int64_t k)
     sc->a_row = alloc_aligned(BLOCK_ROWS * sc->kp);
     sc->g_a = alloc_aligned(BLOCK_ROWS * sc->kp);
     sc->e = alloc_aligned(BLOCK_ROWS * CHUNK_COLS);
-    return !sc->b_t || !sc->b_row || !sc->g_b || !sc->a_row || !sc->g_a || !sc->e;
+    sc->w_t = alloc_aligned(BLOCK_ROWS * CHUNK_COLS);
+    return !sc->b_t || !sc->b_row || !sc->g_b || !sc->a_row || !sc->g_a || !sc->e || !sc->w_t;
 }
 
 static void free_scratch(struct scratch *sc)
@@ -137,6 +146,7 @@ static void free_scratch(struct scratch *sc)
     free(sc->a_row);
     free(sc->g_a);
     free(sc->e);
+    free(sc->w_t);
 }
 
 /* The tiles of B's rows [0, cols) (b: the chunk's first row): b_t and b_row, zero-padded. */
@@ -213,6 +223,36 @@ static double weigh_row(double *e, const double *w, double g, int64_t cols, doub
     return acc;
 }
 
+/* w_t[r][jj] = W_ji for the block's rows i = r0 + r (r < rows) and the chunk's columns j = c0 + jj < c0 + cols
+ * (w: W's row c0 from its column r0 on; each j reads `rows` contiguous doubles). */
+static void load_w_transposed(const double *w, int64_t rows, int64_t cols, int64_t m, struct scratch *sc)
+{
+    for (int64_t jj = 0; jj < cols; ++jj)
+        for (int64_t r = 0; r < rows; ++r)
+            sc->w_t[r * CHUNK_COLS + jj] = w[jj * m + r];
+}
+
+/* Step 3 for one row i of a lower item (no dL/dW): P_ij = g (W_ij + W_ji) E_ij left of the row's diagonal
+ * column `diag` (an index into the chunk; it may lie outside it), g W_ii E_ii on it and 0 right of it;
+ * w: the row's W_ij, w_t: its W_ji. Returns sum_j P. */
+static double weigh_row_lower(double *e, const double *w, const double *w_t, double g, int64_t cols, int64_t diag)
+{
+    const int64_t below = diag < 0 ? 0 : min64(diag, cols);
+    double acc = 0.0;
+#pragma omp simd reduction(+ : acc)
+    for (int64_t jj = 0; jj < below; ++jj) {
+        e[jj] = g * (w[jj] + w_t[jj]) * e[jj];
+        acc += e[jj];
+    }
+    if (diag >= 0 && diag < cols) {
+        e[diag] = g * w[diag] * e[diag];
+        acc += e[diag];
+    }
+    for (int64_t jj = (diag < 0 ? 0 : diag + 1); jj < cols; ++jj)
+        e[jj] = 0.0; /* above the diagonal: counted by its mirror image */
+    return acc;
+}
+
 /* Step 4 for the k's [v, v + LANES): g_a[r] = sum_jj P[r][jj] B_jj and g_b[jj] += sum_r P[r][jj] A_r. */
 static void block_grads(struct scratch *sc, int64_t v, int64_t cols, int64_t cols_p)
 {
@@ -242,6 +282,7 @@ static void block_grads(struct scratch *sc, int64_t v, int64_t cols, int64_t col
 struct unit {
     const double *a, *b, *w; /* the item's A `n x k`, B `m x k`, W `n x m` */
     int64_t m, k;
+    int lower;               /* sum the lower triangle only (symmetric S and W, n = m; forward only) */
     double g;                /* the scale of E: dL/ds in the backward, 1 in the forward */
     double *g_a;             /* the item's `n x k`: G_A (or dL/dA), rows of this unit stored */
     double *g_b;             /* this unit's own `m x k`: its G_B (or dL/dB), stored */
@@ -249,7 +290,8 @@ struct unit {
 };
 
 /* sum over rows [row0, row1) and all m columns of W_ij g exp(S_ij) for one unit, with its rows of
- * g_a and its g_b, g_w where wanted. The sum is formed the same way whatever is wanted. */
+ * g_a and its g_b, g_w where wanted (a lower unit: the lower form, columns up to each row block's
+ * last diagonal only). The sum is formed the same way whatever is wanted. */
 static double run_unit(const struct unit *u, int64_t row0, int64_t row1, struct scratch *sc)
 {
     const int64_t m = u->m, k = u->k, kp = sc->kp;
@@ -264,20 +306,29 @@ static double run_unit(const struct unit *u, int64_t row0, int64_t row1, struct 
             memset(sc->g_b, 0, (size_t)(cols_p * kp) * sizeof(double));
         for (int64_t r0 = row0; r0 < row1; r0 += BLOCK_ROWS) {
             const int64_t rows = min64(BLOCK_ROWS, row1 - r0);
+            /* the block's columns: all of the chunk's, or (lower) those up to its last row's diagonal */
+            const int64_t used = u->lower ? min64(cols, r0 + rows - c0) : cols, used_p = round_up(used);
+            if (used <= 0)
+                continue; /* the chunk lies above the diagonal of every row of the block */
             load_block(u->a + r0 * k, rows, k, sc);
             if (r0 + BLOCK_ROWS < row1)
-                prefetch_rows(u->w + (r0 + BLOCK_ROWS) * m + c0, min64(BLOCK_ROWS, row1 - r0 - BLOCK_ROWS), m, cols);
-            block_of_s(sc, k, cols_p);
-            exp_in_place(sc->e, rows * cols_p);
-            for (int64_t r = 0; r < rows; ++r)
-                total += weigh_row(sc->e + r * cols_p, u->w + (r0 + r) * m + c0, u->g, cols,
-                                   u->g_w ? u->g_w + (r0 + r) * m + c0 : NULL);
-            /* padded rows: P = 0 (step 4 reads only the chunk's cols columns) */
-            memset(sc->e + rows * cols_p, 0, (size_t)((BLOCK_ROWS - rows) * cols_p) * sizeof(double));
+                prefetch_rows(u->w + (r0 + BLOCK_ROWS) * m + c0, min64(BLOCK_ROWS, row1 - r0 - BLOCK_ROWS), m, used);
+            block_of_s(sc, k, used_p);
+            exp_in_place(sc->e, rows * used_p);
+            if (u->lower)
+                load_w_transposed(u->w + c0 * m + r0, rows, used, m, sc);
+            for (int64_t r = 0; r < rows; ++r) {
+                double *e = sc->e + r * used_p;
+                const double *w = u->w + (r0 + r) * m + c0;
+                total += u->lower ? weigh_row_lower(e, w, sc->w_t + r * CHUNK_COLS, u->g, used, r0 + r - c0)
+                                  : weigh_row(e, w, u->g, used, u->g_w ? u->g_w + (r0 + r) * m + c0 : NULL);
+            }
+            /* padded rows: P = 0 (step 4 reads only the block's used columns) */
+            memset(sc->e + rows * used_p, 0, (size_t)((BLOCK_ROWS - rows) * used_p) * sizeof(double));
             if (!grads)
                 continue;
             for (int64_t v = 0; v < kp; v += LANES)
-                block_grads(sc, v, cols, cols_p);
+                block_grads(sc, v, used, used_p);
             if (u->g_a)
                 for (int64_t r = 0; r < rows; ++r)
                     for (int64_t kk = 0; kk < k; ++kk)
@@ -326,11 +377,11 @@ static double *alloc_split_partials(const double *dense, int64_t items, int64_t 
 
 /* Every unit of every item in parallel: partial[item * splits + split] its sum; g_a `items x n x k`,
  * g_b `items x m x k` (the split partials added), g_w `items x n x m`, each dense or NULL; scale
- * `items` (NULL: 1). Returns 0, or 1 when scratch memory could not be allocated. */
+ * `items` (NULL: 1); lower: a flag per item (NULL: none; see run_unit). Returns 0, or 1 when scratch memory could not be allocated. */
 static int run_units(const double *a, const double *b, const double *w, const int64_t *off_a,
                      const int64_t *off_b, const int64_t *off_w, const int64_t *order, int64_t items, int64_t n,
-                     int64_t m, int64_t k, const double *scale, double *partial, double *g_a, double *g_b,
-                     double *g_w, int threads)
+                     int64_t m, int64_t k, const unsigned char *lower, const double *scale, double *partial,
+                     double *g_a, double *g_b, double *g_w, int threads)
 {
     const int64_t splits = num_splits(n);
     const int64_t units = items * splits;
@@ -354,6 +405,7 @@ static int run_units(const double *a, const double *b, const double *w, const in
                     .w = w + off_w[item],
                     .m = m,
                     .k = k,
+                    .lower = lower ? lower[item] != 0 : 0,
                     .g = scale ? scale[item] : 1.0,
                     .g_a = g_a ? g_a + item * n * k : NULL,
                     .g_b = g_b ? unit_partial(g_b, extra, item, split, splits, gb_size) : NULL,
@@ -370,19 +422,17 @@ static int run_units(const double *a, const double *b, const double *w, const in
     return failed;
 }
 
-/* out `items`: the sums; g_a `items x n x k` and g_b `items x m x k`: G_A and G_B, each dense or NULL
- * when not wanted (both NULL: the plain sums). Returns 0, or 1 when scratch memory could not be
- * allocated. */
-int qtl_exp_sum_forward(const double *a, const double *b, const double *w, const int64_t *off_a,
-                        const int64_t *off_b, const int64_t *off_w, const int64_t *order, int64_t items,
-                        int64_t n, int64_t m, int64_t k, double *out, double *g_a, double *g_b, int threads)
+/* The forward pass of qtl_exp_sum_forward and qtl_exp_sum_forward_lower (lower: NULL, or a flag per item). */
+static int forward(const double *a, const double *b, const double *w, const int64_t *off_a, const int64_t *off_b,
+                   const int64_t *off_w, const int64_t *order, int64_t items, int64_t n, int64_t m, int64_t k,
+                   const unsigned char *lower, double *out, double *g_a, double *g_b, int threads)
 {
     const int64_t splits = num_splits(n);
     double *partial = malloc((size_t)(items * splits > 0 ? items * splits : 1) * sizeof(double));
     if (!partial)
         return 1;
-    const int failed = run_units(a, b, w, off_a, off_b, off_w, order, items, n, m, k, NULL, partial, g_a, g_b,
-                                 NULL, threads);
+    const int failed = run_units(a, b, w, off_a, off_b, off_w, order, items, n, m, k, lower, NULL, partial, g_a,
+                                 g_b, NULL, threads);
     if (!failed)
         for (int64_t item = 0; item < items; ++item) {
             double total = 0.0;
@@ -392,6 +442,30 @@ int qtl_exp_sum_forward(const double *a, const double *b, const double *w, const
         }
     free(partial);
     return failed;
+}
+
+/* out `items`: the sums; g_a `items x n x k` and g_b `items x m x k`: G_A and G_B, each dense or NULL
+ * when not wanted (both NULL: the plain sums). Returns 0, or 1 when scratch memory could not be
+ * allocated. */
+int qtl_exp_sum_forward(const double *a, const double *b, const double *w, const int64_t *off_a,
+                        const int64_t *off_b, const int64_t *off_w, const int64_t *order, int64_t items,
+                        int64_t n, int64_t m, int64_t k, double *out, double *g_a, double *g_b, int threads)
+{
+    return forward(a, b, w, off_a, off_b, off_w, order, items, n, m, k, NULL, out, g_a, g_b, threads);
+}
+
+/* As qtl_exp_sum_forward, with the items whose flag in lower `items` is nonzero summed in the lower
+ * form (S symmetric: see the top of this file; their G_A and G_B are the lower form's). Returns
+ * 0, 1 when scratch memory could not be allocated, or 2 when an item is lower but n != m. */
+int qtl_exp_sum_forward_lower(const double *a, const double *b, const double *w, const int64_t *off_a,
+                              const int64_t *off_b, const int64_t *off_w, const int64_t *order, int64_t items,
+                              int64_t n, int64_t m, int64_t k, const unsigned char *lower, double *out,
+                              double *g_a, double *g_b, int threads)
+{
+    for (int64_t item = 0; item < items && n != m; ++item)
+        if (lower[item])
+            return 2;
+    return forward(a, b, w, off_a, off_b, off_w, order, items, n, m, k, lower, out, g_a, g_b, threads);
 }
 
 /* grad_out `items`; grad_a `items x n x k`, grad_b `items x m x k`, grad_w `items x n x m`, each
@@ -405,8 +479,8 @@ int qtl_exp_sum_backward(const double *a, const double *b, const double *w, cons
     double *partial = malloc((size_t)(items * splits > 0 ? items * splits : 1) * sizeof(double));
     if (!partial)
         return 1;
-    const int failed = run_units(a, b, w, off_a, off_b, off_w, order, items, n, m, k, grad_out, partial, grad_a,
-                                 grad_b, grad_w, threads);
+    const int failed = run_units(a, b, w, off_a, off_b, off_w, order, items, n, m, k, NULL, grad_out, partial,
+                                 grad_a, grad_b, grad_w, threads);
     free(partial);
     return failed;
 }

@@ -36,6 +36,8 @@ class ExpSumLibrary:
         lib = ctypes.CDLL(str(path))
         lib.qtl_exp_sum_forward.argtypes = [*_COMMON, _PTR, _PTR, _PTR, _INT]
         lib.qtl_exp_sum_forward.restype = _INT
+        lib.qtl_exp_sum_forward_lower.argtypes = [*_COMMON, _PTR, _PTR, _PTR, _PTR, _INT]
+        lib.qtl_exp_sum_forward_lower.restype = _INT
         lib.qtl_exp_sum_backward.argtypes = [*_COMMON, _PTR, _PTR, _PTR, _PTR, _INT]
         lib.qtl_exp_sum_backward.restype = _INT
         self._lib = lib
@@ -52,21 +54,35 @@ class ExpSumLibrary:
         w: Tensor,
         offsets: tuple[Tensor, Tensor, Tensor, Tensor],
         with_grads: tuple[bool, bool] = (False, False),
+        lower: Tensor | None = None,
     ) -> tuple[Tensor, Tensor | None, Tensor | None]:
         """The sums `items`, and where ``with_grads`` asks, G_A `items x n x K` and G_B `items x m x K`.
 
         G_A[i] = Σ_j W_ij exp(a_i·b_j) b_j and G_B[j] = Σ_i W_ij exp(a_i·b_j) a_i, the gradients of
         the sums for A and B, formed in the same pass as the sums (None where not asked for).
+        ``lower`` `items` (bool, n = m): the flagged items summed from the lower triangle with W_ij + W_ji,
+        for S = A Bᵀ symmetric (the same sum; their G_A and G_B are the lower form's, see `exp_sum.c`).
         """
         sizes = self._sizes(a, b, offsets)
         items, n, m, k = sizes
         out = a.new_empty(items)
         g_a = a.new_empty(items, n, k) if with_grads[0] else None
         g_b = a.new_empty(items, m, k) if with_grads[1] else None
-        status = self._lib.qtl_exp_sum_forward(
-            _ptr(a), _ptr(b), _ptr(w), *map(_ptr, offsets), *sizes,
-            _ptr(out), _ptr(g_a), _ptr(g_b), torch.get_num_threads(),
-        )  # fmt: skip
+        if lower is None:
+            status = self._lib.qtl_exp_sum_forward(
+                _ptr(a), _ptr(b), _ptr(w), *map(_ptr, offsets), *sizes,
+                _ptr(out), _ptr(g_a), _ptr(g_b), torch.get_num_threads(),
+            )  # fmt: skip
+        else:
+            flags = lower.to(torch.uint8).contiguous().reshape(-1)
+            if flags.numel() != items:
+                raise ValueError(f"lower must have one flag per item ({items}), got {flags.numel()}")
+            status = self._lib.qtl_exp_sum_forward_lower(
+                _ptr(a), _ptr(b), _ptr(w), *map(_ptr, offsets), *sizes, _ptr(flags),
+                _ptr(out), _ptr(g_a), _ptr(g_b), torch.get_num_threads(),
+            )  # fmt: skip
+            if status == 2:
+                raise ValueError(f"lower sums need square weights, got n = {n}, m = {m}")
         if status:
             raise MemoryError("the native exp-sum kernel could not allocate its scratch memory")
         return out, g_a, g_b

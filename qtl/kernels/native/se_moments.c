@@ -12,7 +12,10 @@
  *   l_i = ν_i ∘ c_a²/s_p,  r_j = ν_j ∘ c_b²/s_p
  *   A_i = [X_p l_i, u_i, 1],  u_i = log α_a² + ½ (l_iᵀX_p l_i − ν_iᵀ diag(c_a²) ν_i)
  *   B_j = [r_j, 1, v_j],      v_j = log α_b² + ½ (r_jᵀX_p r_j − ν_jᵀ diag(c_b²) ν_j)
- *   S_p = Σ_ij W_p,ij exp(A_i·B_j)       (qtl_exp_sum_forward of exp_sum.c, same library)
+ *   S_p = Σ_ij W_p,ij exp(A_i·B_j)       (qtl_exp_sum_forward_lower of exp_sum.c, same library: for
+ *                                         a = b, A_i·B_j = (X_p l_i)·l_j + u_i + u_j is symmetric in i, j
+ *                                         for every operand, so the lower triangle gives S_p, and the
+ *                                         lower form's G_A, G_B the same adjoint, from half the entries)
  *   cov_ab = exp(−h_p(a,b)) S_p(a,b) − mean_a mean_b      (the model variance diag(α²) is added by
  *                                                          the caller)
  * The backward pass is the hand-derived adjoint of all of the above: d(M⁻¹) = −M⁻¹ dM M⁻¹ and
@@ -40,9 +43,10 @@
 #include <string.h>
 
 /* exp_sum.c (the same library): the fused weighted exponential sums and their gradients. */
-int qtl_exp_sum_forward(const double *a, const double *b, const double *w, const int64_t *off_a,
-                        const int64_t *off_b, const int64_t *off_w, const int64_t *order, int64_t items,
-                        int64_t n, int64_t m, int64_t k, double *out, double *g_a, double *g_b, int threads);
+int qtl_exp_sum_forward_lower(const double *a, const double *b, const double *w, const int64_t *off_a,
+                              const int64_t *off_b, const int64_t *off_w, const int64_t *order, int64_t items,
+                              int64_t n, int64_t m, int64_t k, const unsigned char *lower, double *out,
+                              double *g_a, double *g_b, int threads);
 int qtl_exp_sum_backward(const double *a, const double *b, const double *w, const int64_t *off_a,
                          const int64_t *off_b, const int64_t *off_w, const int64_t *order, int64_t items,
                          int64_t n, int64_t m, int64_t k, const double *grad_out, double *grad_a,
@@ -363,11 +367,12 @@ static int64_t *sum_offsets(const struct sizes *sz, const int64_t *w_offsets)
 }
 
 /* work: the sums `items x p`, the means `items x e` (for the backward pass), then (with_grads) G_A
- * and G_B `items x p x n x k` each. Returns 0, 1 when memory is short, 2 when a B_a or R_p is not
- * positive definite. */
+ * and G_B `items x p x n x k` each; lower_pairs: the a = b pairs' sums from their lower triangles (0:
+ * every pair's full n x n sum, as before). Returns 0, 1 when memory is short, 2 when a B_a or R_p is
+ * not positive definite. */
 int qtl_se_moments_forward(const double *const *operand, int64_t ndim, const int64_t *batch, const int64_t *strides,
                            int64_t n, int64_t d, int64_t e, double *out_mean, double *out_cov, double *gain,
-                           double *work, int with_grads, int threads)
+                           double *work, int with_grads, int lower_pairs, int threads)
 {
     int64_t items = 1;
     for (int64_t dim = 0; dim < ndim; ++dim)
@@ -381,7 +386,8 @@ int qtl_se_moments_forward(const double *const *operand, int64_t ndim, const int
     int64_t *sum_off = offsets ? sum_offsets(&sz, offsets + WEIGHTS * items) : NULL;
     double *lhs = alloc_doubles(count * block), *rhs = alloc_doubles(count * block);
     double *hr = alloc_doubles(count), *vec = alloc_doubles(vec_len(d));
-    int status = (!offsets || !sum_off || !lhs || !rhs || !hr || !vec) ? STATUS_NO_MEMORY : STATUS_OK;
+    unsigned char *lower = malloc((size_t)(count > 0 ? count : 1)); /* the a = b pairs: symmetric sums */
+    int status = (!offsets || !sum_off || !lhs || !rhs || !hr || !vec || !lower) ? STATUS_NO_MEMORY : STATUS_OK;
     for (int64_t b = 0; b < items && status == STATUS_OK; ++b) {
         const struct item it = item_at(operand, offsets, items, b);
         status = item_geometry(&sz, &it, &g);
@@ -394,8 +400,11 @@ int qtl_se_moments_forward(const double *const *operand, int64_t ndim, const int
     if (status == STATUS_OK) {
         double *sums = work, *ops = work + count + items * e;
         double *g_a = with_grads ? ops : NULL, *g_b = with_grads ? ops + count * block : NULL;
-        if (qtl_exp_sum_forward(lhs, rhs, operand[WEIGHTS], sum_off, sum_off, sum_off + count, sum_off + 2 * count,
-                                count, n, n, sz.k, sums, g_a, g_b, threads))
+        for (int64_t b = 0; b < items; ++b)
+            for (int64_t p = 0; p < sz.p; ++p)
+                lower[b * sz.p + p] = lower_pairs && g.pair_a[p] == g.pair_b[p];
+        if (qtl_exp_sum_forward_lower(lhs, rhs, operand[WEIGHTS], sum_off, sum_off, sum_off + count,
+                                      sum_off + 2 * count, count, n, n, sz.k, lower, sums, g_a, g_b, threads))
             status = STATUS_NO_MEMORY;
         else
             for (int64_t b = 0; b < items; ++b) {
@@ -410,6 +419,7 @@ int qtl_se_moments_forward(const double *const *operand, int64_t ndim, const int
                 }
             }
     }
+    free(lower);
     free(vec);
     free(hr);
     free(rhs);

@@ -7,8 +7,10 @@ f_a(x) = Σ_i β_ai k_a(x_i, x) at x ~ N(μ, Σ), with the hand-derived adjoint 
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import math
+from collections.abc import Iterator
 from pathlib import Path
 
 import torch  # first: the library then shares the libgomp torch has loaded
@@ -22,6 +24,19 @@ _PTRS = ctypes.POINTER(ctypes.c_void_p)
 _INTS = ctypes.POINTER(ctypes.c_int64)
 # Trailing (per-item) dimensions of mean, cov, inputs, beta, inv_ls, log_sf2, weights.
 _INNER = (1, 2, 2, 2, 2, 1, 3)
+# The a = b pairs' exp sums from their lower triangles (S_aa is symmetric): E of the E(E+1)/2 sums at half cost.
+_LOWER_PAIRS = True
+
+
+@contextlib.contextmanager
+def full_pairs() -> Iterator[None]:
+    """Every pair's full n x n exp sum inside the block (the form before the lower sums: benchmarks and tests)."""
+    global _LOWER_PAIRS
+    previous, _LOWER_PAIRS = _LOWER_PAIRS, False
+    try:
+        yield
+    finally:
+        _LOWER_PAIRS = previous
 _NUM_OPERANDS = len(_INNER)
 _STATUS_NOT_PD = 2
 
@@ -33,7 +48,7 @@ class SEMomentsLibrary:
         lib = ctypes.CDLL(str(path))
         # operand, ndim, batch, strides, n, d, e
         common = [_PTRS, _INT64, _INTS, _INTS, _INT64, _INT64, _INT64]
-        lib.qtl_se_moments_forward.argtypes = [*common, _PTR, _PTR, _PTR, _PTR, _INT, _INT]
+        lib.qtl_se_moments_forward.argtypes = [*common, _PTR, _PTR, _PTR, _PTR, _INT, _INT, _INT]
         lib.qtl_se_moments_forward.restype = _INT
         lib.qtl_se_moments_backward.argtypes = [*common, _PTR, _INT, _PTRS, _INTS, _PTRS, _INTS, _INT]
         lib.qtl_se_moments_backward.restype = _INT
@@ -61,7 +76,7 @@ class SEMomentsLibrary:
         status = self._lib.qtl_se_moments_forward(
             _pointers(operands), *_batch_args(operands, batch), n, d, e,
             out_mean.data_ptr(), out_cov.data_ptr(), gain.data_ptr(), work.data_ptr(),
-            int(with_grads), torch.get_num_threads(),
+            int(with_grads), int(_LOWER_PAIRS), torch.get_num_threads(),
         )  # fmt: skip
         _raise_for(status)
         return out_mean, out_cov, gain, work
