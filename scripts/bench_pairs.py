@@ -62,26 +62,28 @@ def measure(experiment: str, repeats: int, seed: int) -> dict[str, Any]:
     parts, model, n, fit_s = stage_model(cfg, seed)
     policy = parts.initial_policy()
     round_, restarts = batched_round(parts, model, policy, seed)
-    times: dict[str, list[float]] = {"full": [], "lower": []}
+    times: dict[str, list[float]] = {"full": [], "lower": [], "full_cpu": [], "lower_cpu": []}
     for index in range(repeats + 1):  # the first of each is a warm-up
         for name in ("full", "lower"):
             with se_moments.full_pairs() if name == "full" else contextlib.nullcontext():
-                tic = time.perf_counter()
+                tic, cpu = time.perf_counter(), time.process_time()
                 round_()
                 if index:
                     times[name].append(time.perf_counter() - tic)
+                    times[f"{name}_cpu"].append(time.process_time() - cpu)
     with se_moments.full_pairs():
         value_full, grads_full = round_outputs(parts, model, policy, seed)
     value_lower, grads_lower = round_outputs(parts, model, policy, seed)
     with formulation("fused"):  # the torch twin: how far two correct evaluations of this round differ
         value_torch, grads_torch = round_outputs(parts, model, policy, seed)
-    full_s, lower_s = statistics.median(times["full"]), statistics.median(times["lower"])
+    full_s, lower_s = statistics.median(times["full_cpu"]), statistics.median(times["lower_cpu"])
     outputs = int(parts.task.state_dim)
     return {"experiment": experiment, "task": parts.task.name, "outputs": outputs,
             "pairs": outputs * (outputs + 1) // 2, "horizon": parts.task.horizon, "n": n,
             "inducing": int(model.inducing_points.shape[0]) if hasattr(model, "inducing_points") else None,
             "fit_s": fit_s, "restarts": restarts, "full_s": full_s, "lower_s": lower_s, "ratio": lower_s / full_s,
-            "full_times": times["full"], "lower_times": times["lower"],
+            "full_wall_s": statistics.median(times["full"]), "lower_wall_s": statistics.median(times["lower"]),
+            **{f"{name}_times": values for name, values in times.items()},
             "value_rel_diff": max_relative(value_lower, value_full),
             "grad_rel_diff": max(max_relative(g, f) for g, f in zip(grads_lower, grads_full, strict=True)),
             "torch_value_rel_diff": max_relative(value_full, value_torch),
@@ -110,11 +112,12 @@ def markdown(rows: list[dict[str, Any]], info: dict[str, Any]) -> str:
         "One policy-search round (rollout + gradient of the R restarts at once) on each preset's model just past "
         "`model.sparse_above` (the sparse GP, m inducing inputs), timed alternately with every output pair's full "
         "n x n exp sum (`se_moments.full_pairs()`, the form before) and with the a = b pairs' sums from their "
-        f"lower triangles (the default); medians of {info['repeats']} after a warm-up. Ratio = lower / full, "
+        f"lower triangles (the default); medians of {info['repeats']} after a warm-up of this process's CPU time "
+        "(one thread: the work, whatever else shares the cores; wall times in the JSON). Ratio = lower / full, "
         "measured in the same run. Max rel. diff of V and of ∂V/∂ψ: lower against full, and (for scale: two correct "
         "evaluations of an ill-conditioned round) full against the torch twin (`kernels.moments=fused`).",
         "",
-        "| task | E | pairs (a = b) | H | m | R | full (s) | lower (s) | ratio | lower vs full: V, ∂V/∂ψ "
+        "| task | E | pairs (a = b) | H | m | R | full (CPU s) | lower (CPU s) | ratio | lower vs full: V, ∂V/∂ψ "
         "| full vs torch: V, ∂V/∂ψ |",
         "| --- | ---: | --- | ---: | ---: | ---: | ---: | ---: | ---: | --- | --- |",
     ]
