@@ -282,7 +282,7 @@ static void block_grads(struct scratch *sc, int64_t v, int64_t cols, int64_t col
 struct unit {
     const double *a, *b, *w; /* the item's A `n x k`, B `m x k`, W `n x m` */
     int64_t m, k;
-    int lower;               /* sum the lower triangle only (symmetric S and W, n = m; forward only) */
+    int lower;               /* the lower form (S symmetric, n = m; forward only: see the top of this file) */
     double g;                /* the scale of E: dL/ds in the backward, 1 in the forward */
     double *g_a;             /* the item's `n x k`: G_A (or dL/dA), rows of this unit stored */
     double *g_b;             /* this unit's own `m x k`: its G_B (or dL/dB), stored */
@@ -376,8 +376,9 @@ static double *alloc_split_partials(const double *dense, int64_t items, int64_t 
 }
 
 /* Every unit of every item in parallel: partial[item * splits + split] its sum; g_a `items x n x k`,
- * g_b `items x m x k` (the split partials added), g_w `items x n x m`, each dense or NULL; scale
- * `items` (NULL: 1); lower: a flag per item (NULL: none; see run_unit). Returns 0, or 1 when scratch memory could not be allocated. */
+ * g_b `items x m x k` (the split partials added), g_w `items x n x m`, each dense or NULL; lower `items`:
+ * a flag per item, the lower form (NULL: none); scale `items` (NULL: 1). Returns 0, or 1 when scratch
+ * memory could not be allocated. */
 static int run_units(const double *a, const double *b, const double *w, const int64_t *off_a,
                      const int64_t *off_b, const int64_t *off_w, const int64_t *order, int64_t items, int64_t n,
                      int64_t m, int64_t k, const unsigned char *lower, const double *scale, double *partial,
