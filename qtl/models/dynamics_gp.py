@@ -269,9 +269,21 @@ class DynamicsGP(gpytorch.models.ExactGP):
 
     def log_evidence(self) -> Tensor:
         """Per-output log marginal likelihood plus log priors, divided by n: `E`."""
+        return self.gpytorch_log_evidence()
+
+    def gpytorch_log_evidence(self) -> Tensor:
+        """:meth:`log_evidence` as GPyTorch's ``ExactMarginalLogLikelihood`` evaluates it (training mode): `E`."""
         mll = gpytorch.mlls.ExactMarginalLogLikelihood(self.likelihood, self)
         with self.evidence_settings():
             return mll(self(*self.train_inputs), self.train_targets)
+
+    def log_prior(self) -> Tensor:
+        """The registered priors' log densities per output `E`, summed as GPyTorch's marginal likelihood sums them."""
+        total = torch.zeros(self.num_outputs, dtype=self.train_x.dtype, device=self.train_x.device)
+        for _, module, prior, closure, _ in self.named_priors():
+            term = prior.log_prob(closure(module))
+            total = total + term.view(*term.shape[:1], -1).sum(-1)
+        return total
 
     def fit(
         self,
