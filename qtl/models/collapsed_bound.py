@@ -1,17 +1,22 @@
-"""Titsias' collapsed bound of the sparse GP (SGPR, Titsias 2009) with its gradient, in three `E x m x n` products.
+"""Titsias' collapsed bound of the sparse GP (SGPR, Titsias 2009, Eq. 9) with its gradient in closed form.
 
-Per output, with K_uf `m x n` the SE cross-covariance (Eq. 3) of the inducing inputs Z and the data X, L the
-Cholesky factor of K_uu + δI, Ã = L⁻¹ K_uf, P = Ã Ãᵀ, r = Ã y and B = I + P / σ² = L_B L_Bᵀ:
+Per output, with K_fu `n x m` the SE cross-covariance (Eq. 3) of the data X and the inducing inputs Z, K_uu + δI =
+L Lᵀ (δ = jitter · α²), Ã = L⁻¹ K_uf, P = Ã Ãᵀ, r = Ã y, B = I + P / σ² = L_B L_Bᵀ and β = B⁻¹ r:
 
     F = log N(y | 0, K_fu K_uu⁻¹ K_uf + σ²I) − tr(K_ff − K_fu K_uu⁻¹ K_uf) / (2σ²)
-      = −n/2 log 2π − n/2 log σ² − Σ log diag L_B − (yᵀy − |L_B⁻¹ r|² / σ²) / (2σ²) − (n α² − tr P) / (2σ²)
+      = −n/2 log 2π − n/2 log σ² − log |L_B| − yᵀy / (2σ²) + rᵀβ / (2σ⁴) − (n α² − tr P) / (2σ²)
 
-(the log density by Woodbury, as GPyTorch's ``InducingPointKernel`` evaluates it). Everything after (P, r) is
-`m x m` and goes through autograd; (P, r) come from :class:`ProjectedCrossCovariance`, whose backward gives
-∂F/∂K_uf = L⁻ᵀ (S L⁻¹ K_uf + g yᵀ) with S = G_P + G_Pᵀ and g = G_r in one product, ∂F/∂L from `m x m` factors
-(Ã ∂F/∂Ãᵀ = S P + g rᵀ), and the chain rule to α², ℓ and Z in closed form, so the `E x m x n` work of one
-evaluation and its gradient is Ã (a triangular solve), P (a product) and ∂F/∂K_uf (a product), plus K_uf itself.
-GPyTorch's autograd through the same bound forms about twice the products and a dozen elementwise passes.
+(the log density by Woodbury, the value GPyTorch's ``InducingPointKernel`` gives). Its gradient, with
+S = 2 ∂F/∂P = (I − B⁻¹ − ββᵀ/σ⁴) / σ² and g = ∂F/∂r = β / σ⁴:
+
+    ∂F/∂K_uf = L⁻ᵀ (S Ã + g yᵀ),    ∂F/∂K_uu = −½ L⁻ᵀ (P S + r gᵀ) L⁻¹ (P S + r gᵀ = Ã (∂F/∂Ã)ᵀ, symmetric),
+    ∂F/∂σ² = −n/(2σ²) + σ²(m − tr B⁻¹)/(2σ⁴) + yᵀy/(2σ⁴) + βᵀPβ/(2σ⁸) − rᵀβ/σ⁶ + (n α² − tr P)/(2σ⁴),
+
+then to α², ℓ and Z through the kernel in closed form (W = ∂F/∂K ∘ K). One evaluation with its gradient forms
+three `E x n x m` products (Ã by a triangular solve, P, S Ã) and one more solve; GPyTorch's autograd through the
+same bound forms about twice that, a dozen elementwise passes over `E x n x m`, and the backward of two Cholesky
+factorisations. β is B⁻¹ r by two triangular solves, never by B⁻¹ times r: r lies along B's large eigenvalues
+(~1e8 once learned Z crowd the data) and the explicit product would lose the gradient to O(1) relative error.
 """
 
 from __future__ import annotations
@@ -36,51 +41,90 @@ def se_cross_covariance(inputs: Tensor, inducing: Tensor, lengthscales: Tensor, 
     return torch.baddbmm(offset, x, z.mT).clamp_max_(log_scale).exp_()
 
 
-class ProjectedCrossCovariance(torch.autograd.Function):
-    """(P, r) = (Ã Ãᵀ, Ã y) with Ã = L⁻¹ K_uf: P `E x m x m`, r `E x m`, and their backward in closed form.
+def _spread(row: Tensor, col: Tensor, weighted: Tensor, z: Tensor, x: Tensor) -> Tensor:
+    """Σ_ij W_ij (x_id − z_jd)² per output and input dimension `E x D`, expanded, from W's sums.
 
-    Inputs: ℓ `E x D`, α² `E`, Z `m x D` (shared by the outputs), L `E x m x m` (lower), X `n x D`, y `E x n`.
-    X and y are data: no gradient flows to them. Ã is held transposed, `E x n x m`, the layout in which the
-    triangular solve and the products need no copies.
+    row_j = Σ_i W_ij `E x m`, col_i = Σ_j W_ij `E x n`, weighted_jd = Σ_i W_ij x_id `E x m x D`; Z `m x D`, X `n x D`.
+    """
+    return (row[:, None, :] @ z.square()).squeeze(-2) - 2 * (z * weighted).sum(-2) \
+        + (col[:, None, :] @ x.square()).squeeze(-2)
+
+
+class CollapsedBound(torch.autograd.Function):
+    """F per output `E` and its backward in closed form (module docstring).
+
+    Inputs: ℓ `E x D`, α² `E`, σ² `E`, Z `m x D` (shared by the outputs), X `n x D`, y `E x n`, the jitter δ / α².
+    X and y are data: no gradient flows to them. K_fu and Ãᵀ are held `E x n x m`, the layout in which the
+    triangular solves and the products need no copies.
     """
 
     @staticmethod
-    def forward(ctx, lengthscales: Tensor, signal_variance: Tensor, inducing: Tensor, chol: Tensor,
-                inputs: Tensor, targets: Tensor) -> tuple[Tensor, Tensor]:
+    def forward(ctx, lengthscales: Tensor, signal_variance: Tensor, noise_variance: Tensor, inducing: Tensor,
+                inputs: Tensor, targets: Tensor, jitter: float) -> Tensor:
         centre = inputs.mean(0)  # the kernel is stationary: centring keeps the expansion's cancellation small
         x, z = inputs - centre, inducing - centre
-        k = se_cross_covariance(x, z, lengthscales, signal_variance)  # K_fu, E x n x m
-        a = torch.linalg.solve_triangular(chol.mT, k, upper=True, left=False)  # Ãᵀ = K_fu L⁻ᵀ
+        n, m = x.shape[0], z.shape[0]
+        eye = torch.eye(m, dtype=x.dtype, device=x.device)
+        k_uu = se_cross_covariance(z, z, lengthscales, signal_variance)  # E x m x m
+        chol = psd_safe_cholesky(k_uu + (jitter * signal_variance)[:, None, None] * eye)
+        k_fu = se_cross_covariance(x, z, lengthscales, signal_variance)  # E x n x m
+        a = torch.linalg.solve_triangular(chol.mT, k_fu, upper=True, left=False)  # Ãᵀ = K_fu L⁻ᵀ
         p = a.mT @ a
-        r = (targets[:, None, :] @ a).squeeze(-2)
-        ctx.save_for_backward(lengthscales, signal_variance, z, chol, x, targets, k, a, p, r)
-        return p, r
+        r = (targets[:, None, :] @ a).squeeze(-2)  # E x m
+        noise = noise_variance[:, None, None]
+        chol_b = psd_safe_cholesky(eye + p / noise)
+        c = torch.linalg.solve_triangular(chol_b, r[..., None], upper=False).squeeze(-1)  # L_B⁻¹ r: |c|² = rᵀβ
+        yy = targets.square().sum(-1)
+        trace_p = p.diagonal(dim1=-2, dim2=-1).sum(-1)
+        value = (-0.5 * n * math.log(2 * math.pi) - 0.5 * n * noise_variance.log()
+                 - chol_b.diagonal(dim1=-2, dim2=-1).log().sum(-1)
+                 - 0.5 * (yy - c.square().sum(-1) / noise_variance) / noise_variance
+                 - 0.5 * (n * signal_variance - trace_p) / noise_variance)
+        ctx.jitter = jitter
+        ctx.save_for_backward(lengthscales, signal_variance, noise_variance, z, x, targets, k_uu, k_fu, a, chol, p, r,
+                              chol_b, yy, trace_p)
+        return value
 
     @staticmethod
-    def backward(ctx, grad_p: Tensor, grad_r: Tensor) -> tuple[Tensor | None, ...]:
-        lengthscales, signal_variance, z, chol, x, targets, k, a, p, r = ctx.saved_tensors
-        s = grad_p + grad_p.mT  # E x m x m
-        # ∂F/∂Ã = S Ã + g yᵀ, ∂F/∂K_uf = L⁻ᵀ ∂F/∂Ã and ∂F/∂L = −L⁻ᵀ (∂F/∂Ã) Ãᵀ = −L⁻ᵀ (S P + g rᵀ), lower
-        # triangle. Solves, not products with L⁻ᵀ S or L⁻ᵀ S L⁻¹: with K_uu near singular (learned Z crowd the data)
-        # those are huge and cancel against Ã or K_uf, to 1e-5 or 1e-2 relative in the gradient.
-        grad_a = torch.baddbmm(targets[..., None] * grad_r[:, None, :], a, s)  # (∂F/∂Ã)ᵀ, E x n x m
-        grad_k = torch.linalg.solve_triangular(chol, grad_a, upper=False, left=False)  # ∂F/∂K_fu = (∂F/∂Ã)ᵀ L⁻¹
-        grad_chol = -torch.linalg.solve_triangular(chol.mT, torch.baddbmm(grad_r[..., None] * r[:, None, :], s, p),
-                                                   upper=True).tril_()
-        # Chain rule through K = α² exp(−½ Σ_d (x_d − z_d)² / ℓ_d²), with W = ∂F/∂K_fu ∘ K_fu.
-        w = grad_k.mul_(k)  # E x n x m (in place: ∂F/∂K is not needed again)
-        per_inducing = w.sum(-2)  # E x m
-        per_input = w.sum(-1)  # E x n
-        wx = w.mT @ x  # E x m x D: Σ_i W_ij x_i
-        inv_sq = lengthscales.square().reciprocal()  # E x D
-        grad_signal = per_inducing.sum(-1) / signal_variance
-        # ∂F/∂z_jd = −Σ_e Σ_i W_eij (z_jd − x_id) / ℓ_ed²
-        grad_inducing = -((z * per_inducing[..., None] - wx) * inv_sq[:, None, :]).sum(0)
-        # ∂F/∂ℓ_ed = Σ_ij W_eij (x_id − z_jd)² / ℓ_ed³
-        spread = (per_inducing[:, None, :] @ z.square()).squeeze(-2) - 2 * (z * wx).sum(-2) \
-            + (per_input[:, None, :] @ x.square()).squeeze(-2)  # E x D
-        grad_lengthscales = spread * inv_sq / lengthscales
-        return grad_lengthscales, grad_signal, grad_inducing, grad_chol, None, None
+    def backward(ctx, grad_value: Tensor) -> tuple[Tensor | None, ...]:
+        ls, sv, nv, z, x, y, k_uu, k_fu, a, chol, p, r, chol_b, yy, trace_p = ctx.saved_tensors
+        n, m = x.shape[0], z.shape[0]
+        eye = torch.eye(m, dtype=x.dtype, device=x.device)
+        noise, scale = nv[:, None, None], grad_value[:, None, None]
+        b_inv = torch.cholesky_inverse(chol_b)
+        beta = torch.cholesky_solve(r[..., None], chol_b)  # B⁻¹ r by solves (module docstring), E x m x 1
+        outer = beta @ beta.mT / noise.square()  # ββᵀ/σ⁴
+        s = (eye - b_inv - outer) / noise * scale  # S
+        g = beta.mT / noise.square() * scale  # gᵀ, E x 1 x m
+        # ∂F/∂K_fu = (S Ã + g yᵀ)ᵀ L⁻¹, from (∂F/∂Ã)ᵀ = Ãᵀ S + y gᵀ `E x n x m`.
+        grad_fu = torch.linalg.solve_triangular(chol, torch.baddbmm(y[..., None] * g, a, s), upper=False, left=False)
+        # ∂F/∂K_uu = −½ L⁻ᵀ C L⁻¹ with C = P S + r gᵀ, symmetrised.
+        c = torch.baddbmm(r[..., None] * g, p, s)
+        c = 0.5 * (c + c.mT)
+        grad_uu = -0.5 * torch.linalg.solve_triangular(chol, torch.linalg.solve_triangular(chol.mT, c, upper=True),
+                                                       upper=False, left=False)
+        grad_uu = 0.5 * (grad_uu + grad_uu.mT)
+        # ∂F/∂σ² with P and r held.
+        quad_p = (beta.mT @ p @ beta).flatten(-3)  # βᵀPβ
+        r_beta = (r[:, None, :] @ beta).flatten(-3)  # rᵀβ
+        grad_noise = (-0.5 * n / nv + 0.5 * (m - b_inv.diagonal(dim1=-2, dim2=-1).sum(-1)) / nv
+                      + 0.5 * yy / nv**2 + 0.5 * quad_p / nv**4 - r_beta / nv**3
+                      + 0.5 * (n * sv - trace_p) / nv**2) * grad_value
+        # Through the kernels K = α² exp(−½ Σ_d (a_d − b_d)² / ℓ_d²), with W = ∂F/∂K ∘ K.
+        w_fu = grad_fu.mul_(k_fu)  # E x n x m (in place: ∂F/∂K_fu is not needed again)
+        w_uu = grad_uu * k_uu  # E x m x m, symmetric
+        fu_row, fu_col, fu_x = w_fu.sum(-2), w_fu.sum(-1), w_fu.mT @ x  # E x m, E x n, E x m x D
+        uu_row, uu_z = w_uu.sum(-1), w_uu @ z  # E x m, E x m x D
+        inv_sq = ls.square().reciprocal()  # E x D
+        grad_signal = ((fu_row.sum(-1) + uu_row.sum(-1)) / sv
+                       + ctx.jitter * grad_uu.diagonal(dim1=-2, dim2=-1).sum(-1) - 0.5 * n / nv * grad_value)
+        # ∂F/∂z_jd = −Σ_e [Σ_i W^fu_eij (z_jd − x_id) + 2 Σ_k W^uu_ejk (z_jd − z_kd)] / ℓ_ed²
+        pull = (z * fu_row[..., None] - fu_x) + 2 * (z * uu_row[..., None] - uu_z)
+        grad_inducing = -(pull * inv_sq[:, None, :]).sum(0)
+        # ∂F/∂ℓ_ed = [Σ_ij W^fu_eij (x_id − z_jd)² + Σ_jk W^uu_ejk (z_jd − z_kd)²] / ℓ_ed³
+        spread = _spread(fu_row, fu_col, fu_x, z, x) + _spread(uu_row, uu_row, uu_z, z, z)
+        grad_lengthscales = spread * inv_sq / ls
+        return grad_lengthscales, grad_signal, grad_noise, grad_inducing, None, None, None
 
 
 def collapsed_bound(inputs: Tensor, targets: Tensor, inducing: Tensor, lengthscales: Tensor, signal_variance: Tensor,
@@ -91,19 +135,4 @@ def collapsed_bound(inputs: Tensor, targets: Tensor, inducing: Tensor, lengthsca
     ℓ, α², σ² and Z. Raises linear_operator's ``NotPSDError`` where K_uu + δI is not factorisable even with the
     extra jitter GPyTorch adds.
     """
-    n = inputs.shape[0]
-    z = inducing / lengthscales[:, None, :]
-    sq = (z.square().sum(-1)[:, :, None] + z.square().sum(-1)[:, None, :] - 2 * z @ z.mT).clamp_min(0)
-    k_uu = signal_variance[:, None, None] * torch.exp(-0.5 * sq)
-    if jitter:
-        eye = torch.eye(inducing.shape[0], dtype=inputs.dtype, device=inputs.device)
-        k_uu = k_uu + (jitter * signal_variance)[:, None, None] * eye
-    chol = psd_safe_cholesky(k_uu)
-    p, r = ProjectedCrossCovariance.apply(lengthscales, signal_variance, inducing, chol, inputs, targets)
-    eye = torch.eye(p.shape[-1], dtype=p.dtype, device=p.device)
-    chol_b = psd_safe_cholesky(eye + p / noise_variance[:, None, None])
-    c = torch.linalg.solve_triangular(chol_b, r[..., None], upper=False).squeeze(-1)  # L_B⁻¹ r
-    half_logdet = chol_b.diagonal(dim1=-2, dim2=-1).log().sum(-1)
-    quad = (targets.square().sum(-1) - c.square().sum(-1) / noise_variance) / noise_variance
-    trace = (n * signal_variance - p.diagonal(dim1=-2, dim2=-1).sum(-1)) / noise_variance
-    return -0.5 * n * math.log(2 * math.pi) - 0.5 * n * noise_variance.log() - half_logdet - 0.5 * quad - 0.5 * trace
+    return CollapsedBound.apply(lengthscales, signal_variance, noise_variance, inducing, inputs, targets, jitter)

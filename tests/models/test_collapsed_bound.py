@@ -4,6 +4,7 @@ SGPR density, its backward against finite differences, and the sparse model's ev
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import gpytorch
 import pytest
@@ -11,7 +12,7 @@ import torch
 from torch import Tensor
 
 from qtl.models import GPHyperparameters, SparseDynamicsGP
-from qtl.models.collapsed_bound import ProjectedCrossCovariance, collapsed_bound, se_cross_covariance
+from qtl.models.collapsed_bound import collapsed_bound, se_cross_covariance
 
 DTYPE = torch.float64
 
@@ -75,20 +76,6 @@ def test_the_bound_equals_the_dense_density_minus_the_trace_term(jitter):
         torch.testing.assert_close(g, w, rtol=1e-7, atol=1e-9, msg=lambda text, name=name: f"∂F/∂{name}: {text}")
 
 
-def test_the_projected_cross_covariance_backward_against_finite_differences():
-    p = problem(11, 5, 2, 3, seed=2)
-    gen = torch.Generator().manual_seed(3)
-    root = torch.randn(2, 5, 5, generator=gen, dtype=DTYPE)
-    chol = torch.linalg.cholesky(root @ root.mT + 5 * torch.eye(5, dtype=DTYPE))
-    leaves = (p["lengthscales"].requires_grad_(), p["signal_variance"].requires_grad_(),
-              p["inducing"].requires_grad_(), chol.requires_grad_())
-
-    def apply(*args: Tensor) -> tuple[Tensor, Tensor]:
-        return ProjectedCrossCovariance.apply(*args, p["inputs"], p["targets"])
-
-    assert torch.autograd.gradcheck(apply, leaves, eps=1e-6, atol=1e-7, rtol=1e-6)
-
-
 def test_the_whole_bound_against_finite_differences():
     p = problem(13, 4, 2, 3, seed=4)
     leaves = tuple(p[name].requires_grad_() for name in ("inducing", "lengthscales", "signal_variance",
@@ -122,6 +109,29 @@ def test_the_sparse_models_evidence_equals_gpytorchs(n, m):
     want = model.gpytorch_log_evidence()
     want_grads = torch.autograd.grad(want.sum(), params)
     torch.testing.assert_close(got, want, rtol=1e-10, atol=1e-10)
+    for g, w in zip(got_grads, want_grads, strict=True):
+        assert float((g - w).abs().max() / w.abs().max()) < 1e-5
+
+
+REAL_FIT = Path(__file__).parent / "data" / "cartpole_sparse_fit.pt"
+
+
+def test_on_a_learned_cartpole_model_the_gradient_equals_gpytorchs():
+    # A learned model as the sweep meets it (see "source" in the file): Z crowd the data, σ² ~ 5e-6 α², so B has
+    # eigenvalues ~1e8 and the gradient is a small difference of large terms. β = B⁻¹ r by the explicit inverse
+    # instead of solves gives 1e-3 relative error here (the whole model, n = 1250 and m = 300: 0.7 against 2e-6).
+    data = torch.load(REAL_FIT, weights_only=True)
+    theta = GPHyperparameters(lengthscales=data["lengthscales"], signal_variance=data["signal_variance"],
+                              noise_variance=data["noise_variance"])
+    model = SparseDynamicsGP(data["inputs"], data["targets"], theta, inducing_points=data["inducing"],
+                             jitter=data["jitter"])
+    model.train()
+    params = [param for param in model.parameters() if param.requires_grad]
+    got = model.log_evidence()
+    got_grads = torch.autograd.grad(got.sum(), params)
+    want = model.gpytorch_log_evidence()
+    want_grads = torch.autograd.grad(want.sum(), params)
+    torch.testing.assert_close(got, want, rtol=1e-9, atol=1e-9)
     for g, w in zip(got_grads, want_grads, strict=True):
         assert float((g - w).abs().max() / w.abs().max()) < 1e-5
 
