@@ -35,10 +35,10 @@ def se_cross_covariance(inputs: Tensor, inducing: Tensor, lengthscales: Tensor, 
     """
     x = inputs / lengthscales[:, None, :]  # E x n x D
     z = inducing / lengthscales[:, None, :]  # E x m x D
-    log_scale = signal_variance.log()[:, None, None]
-    # log K = log α² − ½ (|x|² + |z|²) + xᵀz: one batched product on top of the broadcast sum.
-    offset = log_scale - 0.5 * (x.square().sum(-1)[:, :, None] + z.square().sum(-1)[:, None, :])
-    return torch.baddbmm(offset, x, z.mT).clamp_max_(log_scale).exp_()
+    log_scale = signal_variance.log()[:, None]
+    # log K = (log α² − ½|x|²) + (−½|z|²) + xᵀz: one broadcast sum of two vectors, one batched product onto it.
+    offset = (log_scale - 0.5 * x.square().sum(-1))[:, :, None] + (-0.5 * z.square().sum(-1))[:, None, :]
+    return torch.baddbmm(offset, x, z.mT).clamp_max_(log_scale[..., None]).exp_()
 
 
 def _spread(row: Tensor, col: Tensor, weighted: Tensor, z: Tensor, x: Tensor) -> Tensor:
@@ -96,10 +96,11 @@ class CollapsedBound(torch.autograd.Function):
         outer = beta @ beta.mT / noise.square()  # ββᵀ/σ⁴
         s = (eye - b_inv - outer) / noise * scale  # S
         g = beta.mT / noise.square() * scale  # gᵀ, E x 1 x m
-        # ∂F/∂K_fu = (S Ã + g yᵀ)ᵀ L⁻¹, from (∂F/∂Ã)ᵀ = Ãᵀ S + y gᵀ `E x n x m`.
-        grad_fu = torch.linalg.solve_triangular(chol, torch.baddbmm(y[..., None] * g, a, s), upper=False, left=False)
+        # ∂F/∂K_fu = (S Ã + g yᵀ)ᵀ L⁻¹, from (∂F/∂Ã)ᵀ = Ãᵀ S + y gᵀ `E x n x m` (rank-1 update and solve in place).
+        grad_fu = (a @ s).baddbmm_(y[..., None], g)
+        torch.linalg.solve_triangular(chol, grad_fu, upper=False, left=False, out=grad_fu)
         # ∂F/∂K_uu = −½ L⁻ᵀ C L⁻¹ with C = P S + r gᵀ, symmetrised.
-        c = torch.baddbmm(r[..., None] * g, p, s)
+        c = (p @ s).baddbmm_(r[..., None], g)
         c = 0.5 * (c + c.mT)
         grad_uu = -0.5 * torch.linalg.solve_triangular(chol, torch.linalg.solve_triangular(chol.mT, c, upper=True),
                                                        upper=False, left=False)
