@@ -7,6 +7,7 @@ The helicopter's autopilot line is read from ``experiment.yaml``, where ``script
 records it; ``--record-reference`` flies the autopilot and records it first (for runs made another way).
 
     python scripts/report.py runs/cartpole
+    python scripts/report.py runs/cartpole --finished-only   # mid-sweep: the finished runs only
     python scripts/report.py runs/aircraft --out docs/aircraft
     python scripts/report.py runs/aircraft --record-reference
 """
@@ -27,11 +28,13 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=None, help="where the report goes (default: <root>/report)")
     parser.add_argument("--record-reference", action="store_true",
                         help="fly the helicopter's autopilot and record its return in <root>/experiment.yaml first")
+    parser.add_argument("--finished-only", action="store_true",
+                        help="leave out (and name) the runs with fewer episodes than configured: a sweep still running")
     args = parser.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
     if args.record_reference and record_reference(args.root) is None:
         logging.getLogger(__name__).warning("%s does not fly the helicopter: no reference line recorded", args.root)
-    print(write_report(args.root, args.out))
+    print(write_report(args.root, args.out, finished_only=args.finished_only))
 
 
 if __name__ == "__main__":

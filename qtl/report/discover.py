@@ -8,7 +8,8 @@ The layout (made by the experiment presets through ``qtl-train``)::
 
 Every run directory holds ``metrics.csv`` (one row per episode) and ``.hydra/overrides.yaml``.
 The seeds of a cell (one approach on one label) are compared on their common episodes: a cell
-whose runs have different lengths (one was interrupted) is cut to its shortest run.
+whose runs have different lengths (one was interrupted) is cut to its shortest run. With ``finished_only``
+(a sweep still running), runs with fewer episodes than their configuration asks for are left out instead, and named.
 """
 
 from __future__ import annotations
@@ -82,6 +83,7 @@ class Experiment:
     source_dirs: dict[int, Path]
     cells: dict[str, dict[str, Cell]]  # approach -> label -> cell; approaches in table order
     reference: Reference | None = None  # from experiment.yaml: the line drawn beside the curves (Fig. 3)
+    left_out: tuple[str, ...] = ()  # unfinished runs left out (``finished_only``): "<run> (k of K episodes)"
 
     @property
     def approaches(self) -> list[str]:
@@ -108,12 +110,27 @@ class Experiment:
                 for seed in cell.seeds]
 
 
-def _seed_runs(folder: Path) -> dict[int, tuple[Path, Curve]]:
-    """{seed: (run dir, whole curve)} of the ``seed_<k>`` folders under ``folder`` with at least one episode."""
+def configured_episodes(run_dir: Path) -> int | None:
+    """Episodes the run's configuration asks for (random + learned), from ``.hydra/config.yaml``; None without it."""
+    path = run_dir / CONFIG_FILE
+    if not path.is_file():
+        return None
+    cfg = yaml.safe_load(path.read_text()) or {}
+    if "episodes" not in cfg:
+        return None
+    return int(cfg.get("random_episodes", 1)) + int(cfg["episodes"])
+
+
+def _seed_runs(folder: Path, left_out: list[tuple[Path, int, int]] | None = None) -> dict[int, tuple[Path, Curve]]:
+    """{seed: (run dir, whole curve)} of the ``seed_<k>`` folders under ``folder`` with at least one episode.
+
+    With ``left_out`` given (``finished_only``), a run with fewer episodes than configured is skipped and added
+    there as (run dir, episodes made, episodes configured).
+    """
     runs: dict[int, tuple[Path, Curve]] = {}
     if not folder.is_dir():
         return runs
-    for run_dir in folder.iterdir():
+    for run_dir in sorted(folder.iterdir()):
         suffix = run_dir.name.removeprefix(SEED_PREFIX)
         if not (run_dir.is_dir() and run_dir.name.startswith(SEED_PREFIX) and suffix.isdigit()):
             continue
@@ -121,7 +138,10 @@ def _seed_runs(folder: Path) -> dict[int, tuple[Path, Curve]]:
             logger.warning("%s has no %s: skipped", run_dir, METRICS_FILE)
             continue
         curve = Curve.read(run_dir)
-        if curve.returns:
+        configured = configured_episodes(run_dir) if left_out is not None else None
+        if configured is not None and len(curve.returns) < configured:
+            left_out.append((run_dir, len(curve.returns), configured))
+        elif curve.returns:
             runs[int(suffix)] = (run_dir, curve)
         else:
             logger.warning("%s has no episode yet: skipped", run_dir)
@@ -140,24 +160,30 @@ def _read_cell(approach: str, label: str, runs: dict[int, tuple[Path, Curve]]) -
     return Cell(approach, label, curves, lengths, {seed: run_dir for seed, (run_dir, _) in runs.items()})
 
 
-def discover(root: str | Path) -> Experiment:
-    """Read every run of an experiment directory (the data behind Tables 1-6 and Figs. 1-3)."""
+def discover(root: str | Path, *, finished_only: bool = False) -> Experiment:
+    """Read every run of an experiment directory (the data behind Tables 1-6 and Figs. 1-3).
+
+    ``finished_only``: leave out the runs that have fewer episodes than their configuration asks for (a sweep
+    still running, or an interrupted run), named in ``Experiment.left_out``, instead of cutting their cells.
+    """
     root = Path(root).expanduser().resolve()
     targets = root / TARGET_DIR
+    left_out: list[tuple[Path, int, int]] | None = [] if finished_only else None
     cells: dict[str, dict[str, Cell]] = {}
     approach_dirs = [p for p in targets.iterdir() if p.is_dir()] if targets.is_dir() else []
     for approach_dir in sorted(approach_dirs, key=lambda p: approach_order(p.name)):
         by_label: dict[str, Cell] = {}
         for label_dir in sorted((p for p in approach_dir.iterdir() if p.is_dir()), key=lambda p: label_order(p.name)):
-            runs = _seed_runs(label_dir)
+            runs = _seed_runs(label_dir, left_out)
             if runs:
                 by_label[label_dir.name] = _read_cell(approach_dir.name, label_dir.name, runs)
         if by_label:
             cells[approach_dir.name] = by_label
     if not cells:
         expected = targets / "<approach>" / "<label>" / f"{SEED_PREFIX}<k>" / METRICS_FILE
-        raise ValueError(f"{root}: no target runs (expected {expected})")
-    sources = _seed_runs(root / SOURCE_DIR)
+        which = "finished target runs" if finished_only else "target runs"
+        raise ValueError(f"{root}: no {which} (expected {expected})")
+    sources = _seed_runs(root / SOURCE_DIR, left_out)
     record = ExperimentRecord.read(root)
     return Experiment(
         root=root,
@@ -167,6 +193,8 @@ def discover(root: str | Path) -> Experiment:
         source_dirs={seed: run_dir for seed, (run_dir, _) in sources.items()},
         cells=cells,
         reference=record.reference,
+        left_out=tuple(f"{run_dir.relative_to(root)} ({made} of {configured} episodes)"
+                       for run_dir, made, configured in left_out or []),
     )
 
 

@@ -13,11 +13,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import pandas as pd
-import yaml
 
 from qtl.health import EVENTS
 from qtl.recorder import HEALTH_FILE
-from qtl.report.discover import CONFIG_FILE, Experiment
+from qtl.report.discover import Experiment, configured_episodes
 from qtl.report.tables import markdown
 
 # The columns of the reliability table, as its rows name them.
@@ -64,17 +63,6 @@ def _health_rows(run_dir: Path) -> list[dict[str, str]]:
         return []
     with open(path, newline="") as f:
         return list(csv.DictReader(f))
-
-
-def configured_episodes(run_dir: Path) -> int | None:
-    """Episodes the run's configuration asks for (random + learned), from ``.hydra/config.yaml``; None without it."""
-    path = run_dir / CONFIG_FILE
-    if not path.is_file():
-        return None
-    cfg = yaml.safe_load(path.read_text()) or {}
-    if "episodes" not in cfg:
-        return None
-    return int(cfg.get("random_episodes", 1)) + int(cfg["episodes"])
 
 
 def reliability(experiment: Experiment) -> dict[str, Reliability]:

@@ -74,6 +74,7 @@ def tables_json(experiment: Experiment) -> dict[str, object]:
                               "run_episodes": {str(s): n for s, n in sorted(cell.lengths.items())}}
                       for label, cell in by_label.items()}
                   for a, by_label in experiment.cells.items()},
+        "left_out": list(experiment.left_out),
         **metrics,
         "compliance": {label: {"approach": row["approach"], **_stat_json(row, compliance[
                            (compliance["approach"] == row["approach"]) & (compliance["label"] == label)])}
@@ -102,6 +103,9 @@ def _found_markdown(experiment: Experiment) -> str:
         lines.append("- Source runs: none")
     lines.append("- Approaches: " + ", ".join(f"{approach_name(a)} (`{a}`)" for a in experiment.approaches))
     lines.append("- Targets: " + ", ".join(experiment.labels))
+    if experiment.left_out:
+        lines.append(f"- Left out, unfinished (fewer episodes than configured; a sweep still running): "
+                     f"{len(experiment.left_out)} run(s): " + ", ".join(experiment.left_out))
     rows = []
     for approach, by_label in experiment.cells.items():
         for label, cell in by_label.items():
@@ -142,20 +146,22 @@ def report_markdown(experiment: Experiment, figures: Sequence[Path]) -> str:
         "## Tables\n\n" + "\n\n".join(tables_markdown(experiment)),
         f"## Learning curves\n\n![learning curves]({png.name})\n\n{caption} "
         + " ".join(f"[{p.suffix[1:].upper()}]({p.name})" for p in others),
-        "## Reliability\n\nOver every run found (sources and targets), from each run's `health.csv`:\n\n"
+        "## Reliability\n\nOver every run " + ("in the tables" if experiment.left_out else "found")
+        + " (sources and targets), from each run's `health.csv`:\n\n"
         + reliability_markdown(experiment),
         "## Commands\n\n" + _commands_markdown(experiment),
     ]
     return "\n\n".join(sections) + "\n"
 
 
-def write_report(root: str | Path, out_dir: str | Path | None = None) -> Path:
+def write_report(root: str | Path, out_dir: str | Path | None = None, *, finished_only: bool = False) -> Path:
     """Write ``report.md``, ``tables.json`` and the learning-curve figure (Tables 1-6, Figs. 1-3); the report's path.
 
     ``out_dir`` defaults to ``<root>/report``. The autopilot line is read from ``experiment.yaml``, never computed
-    here. Raises ValueError when ``root`` has no target runs.
+    here. ``finished_only``: leave out (and name) the runs with fewer episodes than configured. Raises ValueError
+    when ``root`` has no target runs (none finished, with ``finished_only``).
     """
-    experiment = discover(root)
+    experiment = discover(root, finished_only=finished_only)
     out = experiment.root / REPORT_DIR if out_dir is None else Path(out_dir).expanduser().resolve()
     out.mkdir(parents=True, exist_ok=True)
     if flies_helicopter(experiment) and experiment.reference is None:

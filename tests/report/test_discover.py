@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import pytest
+import yaml
 
 from qtl.report import discover, label_order, write_report
-from tests.report.fakes import CARTPOLE, make_experiment, write_run
+from tests.report.fakes import CARTPOLE, NAN, make_experiment, write_run
 
 
 def test_discover_reads_every_cell_cut_to_its_common_episodes(tmp_path):
@@ -37,3 +38,39 @@ def test_a_root_without_target_runs_is_an_error(tmp_path):
     with pytest.raises(ValueError, match="no target runs"):
         write_report(tmp_path)
     assert not (tmp_path / "report").exists()
+
+
+def test_finished_only_leaves_out_the_runs_short_of_their_configured_episodes(tmp_path):
+    # A sweep still running: pilco/m2.0 seed 1 has 8 of 8 episodes, seed 0 only 6 of 8 (and one source is short too).
+    root = make_experiment(tmp_path, CARTPOLE)
+    for run_dir in [*root.glob("target/*/*/seed_*"), *root.glob("source/seed_*")]:
+        (run_dir / ".hydra" / "config.yaml").write_text(yaml.safe_dump({"episodes": 7, "random_episodes": 1}))
+    (root / "source" / "seed_0" / ".hydra" / "config.yaml").write_text(yaml.safe_dump({"episodes": 3}))  # 4 of 4
+    (root / "source" / "seed_1" / ".hydra" / "config.yaml").write_text(yaml.safe_dump({"episodes": 9}))  # 4 of 10
+
+    everything = discover(root)  # the default: every run, cells cut to their common episodes
+    assert everything.cell("pilco", "m2.0").seeds == [0, 1] and everything.left_out == ()
+
+    finished = discover(root, finished_only=True)
+    cell = finished.cell("pilco", "m2.0")
+    assert cell.seeds == [1] and cell.episodes == 8 and not cell.truncated
+    assert finished.cell("pilco", "m1.5") is None  # both of its 6-episode runs are short of 8
+    assert sorted(finished.sources) == [0]
+    assert finished.left_out == (  # in table order: approaches as the paper's rows, labels, seeds
+        "target/pilco/m1.5/seed_0 (6 of 8 episodes)", "target/pilco/m1.5/seed_1 (6 of 8 episodes)",
+        "target/pilco/m2.0/seed_0 (6 of 8 episodes)",
+        "target/qtl_bayesian/m1.5/seed_0 (6 of 8 episodes)", "target/qtl_bayesian/m1.5/seed_1 (6 of 8 episodes)",
+        "target/qtl_bayesian/m2.0/seed_0 (6 of 8 episodes)", "target/qtl_bayesian/m2.0/seed_1 (6 of 8 episodes)",
+        "source/seed_1 (4 of 10 episodes)")
+    assert finished.approaches == ["pilco"] and finished.labels == ["m2.0"]
+    report = write_report(root, tmp_path / "out", finished_only=True).read_text()
+    assert "Left out, unfinished" in report and "target/pilco/m2.0/seed_0 (6 of 8 episodes)" in report
+
+
+def test_finished_only_without_a_finished_target_run_is_an_error(tmp_path):
+    root = make_experiment(tmp_path, {"pilco": {"m1.5": {0: ([0, 10, 20], [NAN] * 3)}}})
+    (root / "target" / "pilco" / "m1.5" / "seed_0" / ".hydra" / "config.yaml").write_text(
+        yaml.safe_dump({"episodes": 24}))
+    with pytest.raises(ValueError, match="no finished target runs"):
+        write_report(root, finished_only=True)
+    assert write_report(root).is_file()  # without the option the run is reported, as it stands
