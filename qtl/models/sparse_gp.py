@@ -2,8 +2,9 @@
 
 The same model as :class:`~qtl.models.DynamicsGP` (zero mean, the SE kernel of Eq. 3, Gaussian
 noise, E outputs in one batch) with GPyTorch's ``InducingPointKernel``: evidence maximisation
-uses Titsias' collapsed bound, O(n m²) per evaluation instead of O(n³), and optimises the m
-inducing inputs Z (shared by the E outputs) together with θ. PILCO's own sparse option is FITC
+uses Titsias' collapsed bound, O(n m²) per evaluation instead of O(n³) (evaluated with its gradient in
+closed form by :mod:`qtl.models.collapsed_bound`), and optimises the m inducing inputs Z (shared by the
+E outputs) together with θ. PILCO's own sparse option is FITC
 with ~300 pseudo-inputs; SGPR has the same predictive form and a bound that does not overfit Z.
 
 Prediction (Eq. 1-2 with the inducing inputs), per output a, with Σ = K_mm + σ⁻² K_mn K_nm:
@@ -153,7 +154,7 @@ class SparseDynamicsGP(DynamicsGP):
         return self.covar_module.jitter
 
     def evidence_settings(self) -> contextlib.AbstractContextManager[None]:
-        """Exact, structured evaluation of the collapsed bound (Titsias 2009) in O(n m²).
+        """GPyTorch's exact, structured evaluation of the collapsed bound in O(n m²) (:meth:`gpytorch_log_evidence`).
 
         GPyTorch's log-density of the low-rank-plus-diagonal covariance (Woodbury and the `m x m`
         capacitance Cholesky): the same value as the dense `n x n` Cholesky, which costs O(n³).
