@@ -15,7 +15,7 @@ relative differences of value and gradient; then, for the ``--fit`` cases, one w
 reached. Writes ``docs/bench/sparse_bound.json`` and its section of ``docs/benchmarks.md``.
 
     .venv/bin/python scripts/bench_sparse_bound.py [--sizes 400 800 1250 2000] [--fit synthetic-1250 run]
-        [--checkpoint PATH] [--repeats 7] [--threads 1]
+        [--checkpoint PATH|none] [--inducing 300] [--repeats 7] [--threads 1]
 """
 
 from __future__ import annotations
@@ -46,13 +46,13 @@ DEFAULT_OUTPUT = benchlib.ROOT / "docs" / "bench" / "sparse_bound.json"
 SECTION = "bench_sparse_bound"
 
 
-def synthetic(n: int, seed: int) -> SparseDynamicsGP:
-    """n points of sin(x W / 2) + noise, x in [-2, 2]^6, at PILCO's heuristic θ with 300 inducing inputs drawn."""
+def synthetic(n: int, seed: int, inducing: int = INDUCING) -> SparseDynamicsGP:
+    """n points of sin(x W / 2) + noise, x in [-2, 2]^6, at PILCO's heuristic θ with ``inducing`` inputs drawn."""
     gen = torch.Generator().manual_seed(seed)
     x = torch.rand(n, INPUT_DIM, generator=gen, dtype=torch.float64) * 4 - 2
     w = torch.randn(INPUT_DIM, OUTPUTS, generator=gen, dtype=torch.float64)
     y = torch.sin(x @ w / 2) + NOISE_STD * torch.randn(n, OUTPUTS, generator=gen, dtype=torch.float64)
-    return SparseDynamicsGP(x, y, num_inducing=INDUCING, generator=gen)
+    return SparseDynamicsGP(x, y, num_inducing=inducing, generator=gen)
 
 
 def from_checkpoint(path: Path) -> SparseDynamicsGP:
@@ -166,8 +166,9 @@ def markdown(rows: list[dict[str, Any]], info: dict[str, Any]) -> str:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", type=int, nargs="*", default=[400, 800, 1250, 2000])
-    parser.add_argument("--checkpoint", type=Path, default=DEFAULT_CHECKPOINT,
-                        help="a run's episode checkpoint (the 'run' case); skipped if it does not exist")
+    parser.add_argument("--checkpoint", default=str(DEFAULT_CHECKPOINT),
+                        help="a run's episode checkpoint (the 'run' case; 'none': no such case)")
+    parser.add_argument("--inducing", type=int, default=INDUCING, help="inducing inputs of the synthetic cases")
     parser.add_argument("--fit", nargs="*", default=["synthetic-1250", "run"],
                         help="the cases that also get a whole L-BFGS run by each path")
     parser.add_argument("--threads", type=int, default=1, help="torch threads (a sweep job uses one)")
@@ -176,13 +177,14 @@ def main() -> None:
     parser.add_argument("--output", type=Path, default=DEFAULT_OUTPUT)
     parser.add_argument("--no-docs", action="store_true")
     args = parser.parse_args()
-    if args.checkpoint is not None and not args.checkpoint.exists() and args.checkpoint != DEFAULT_CHECKPOINT:
-        parser.error(f"--checkpoint {args.checkpoint} does not exist: give a run's checkpoints/episode_NNNN.pt")
+    checkpoint = None if args.checkpoint == "none" else Path(args.checkpoint)
+    if checkpoint is not None and not checkpoint.is_file():
+        parser.error(f"--checkpoint {checkpoint} does not exist: give a run's checkpoints/episode_NNNN.pt, or none")
     torch.set_num_threads(args.threads)
     load_before = os.getloadavg()[0]
-    cases = [(f"synthetic-{n}", lambda n=n: synthetic(n, args.seed)) for n in args.sizes]
-    if args.checkpoint is not None and args.checkpoint.exists():
-        cases.append(("run", lambda: from_checkpoint(args.checkpoint)))
+    cases = [(f"synthetic-{n}", lambda n=n: synthetic(n, args.seed, args.inducing)) for n in args.sizes]
+    if checkpoint is not None:
+        cases.append(("run", lambda: from_checkpoint(checkpoint)))
     rows = []
     for name, make in cases:
         rows.append(measure(name, make(), args.repeats, name in args.fit))
@@ -190,7 +192,7 @@ def main() -> None:
     output = args.output.resolve()
     info = {"date": benchlib.today(), "command": benchlib.command_line(), "commit": benchlib.commit(),
             "machine": benchlib.machine(), "threads": args.threads, "repeats": args.repeats, "seed": args.seed,
-            "checkpoint": benchlib.display_path(args.checkpoint.resolve()) if args.checkpoint else None,
+            "checkpoint": None if checkpoint is None else benchlib.display_path(checkpoint.resolve()),
             "load_before": load_before, "load_after": os.getloadavg()[0], "output": benchlib.display_path(output)}
     benchlib.write_results(output, info, rows)
     section = markdown(rows, info)
