@@ -95,22 +95,27 @@ def crowded_model(n: int, m: int, seed: int) -> SparseDynamicsGP:
     return SparseDynamicsGP(p["inputs"], p["targets"].T, theta, inducing_points=p["inducing"], jitter=1e-6)
 
 
+def assert_evidence_equals_gpytorchs(model: SparseDynamicsGP, value_tol: float) -> None:
+    """Evidence equal to GPyTorch's to ``value_tol``, its gradient in every trained parameter to 1e-5 relative."""
+    model.train()
+    params = [param for param in model.parameters() if param.requires_grad]
+    got = model.log_evidence()
+    got_grads = torch.autograd.grad(got.sum(), params)
+    want = model.gpytorch_log_evidence()
+    want_grads = torch.autograd.grad(want.sum(), params)
+    torch.testing.assert_close(got, want, rtol=value_tol, atol=value_tol)
+    for g, w in zip(got_grads, want_grads, strict=True):
+        assert float((g - w).abs().max() / w.abs().max()) < 1e-5
+
+
 @pytest.mark.parametrize(("n", "m"), [(60, 20), (300, 120)])
 def test_the_sparse_models_evidence_equals_gpytorchs(n, m):
     # Value and gradient of every trained parameter (raw θ, Z), priors included, against GPyTorch's marginal
     # likelihood of the same model. K_uu is near singular here (as with learned Z), so the two evaluations of
     # the gradient differ at the level that conditioning sets for any two correct ones (1e-6 relative measured).
     model = crowded_model(n, m, seed=5)
-    model.train()
-    params = [param for param in model.parameters() if param.requires_grad]
-    assert len(params) == 4  # raw noise, Z, raw α², raw ℓ
-    got = model.log_evidence()
-    got_grads = torch.autograd.grad(got.sum(), params)
-    want = model.gpytorch_log_evidence()
-    want_grads = torch.autograd.grad(want.sum(), params)
-    torch.testing.assert_close(got, want, rtol=1e-10, atol=1e-10)
-    for g, w in zip(got_grads, want_grads, strict=True):
-        assert float((g - w).abs().max() / w.abs().max()) < 1e-5
+    assert len([param for param in model.parameters() if param.requires_grad]) == 4  # raw noise, Z, raw α², raw ℓ
+    assert_evidence_equals_gpytorchs(model, value_tol=1e-10)
 
 
 REAL_FIT = Path(__file__).parent / "data" / "cartpole_sparse_fit.pt"
@@ -125,15 +130,7 @@ def test_on_a_learned_cartpole_model_the_gradient_equals_gpytorchs():
                               noise_variance=data["noise_variance"])
     model = SparseDynamicsGP(data["inputs"], data["targets"], theta, inducing_points=data["inducing"],
                              jitter=data["jitter"])
-    model.train()
-    params = [param for param in model.parameters() if param.requires_grad]
-    got = model.log_evidence()
-    got_grads = torch.autograd.grad(got.sum(), params)
-    want = model.gpytorch_log_evidence()
-    want_grads = torch.autograd.grad(want.sum(), params)
-    torch.testing.assert_close(got, want, rtol=1e-9, atol=1e-9)
-    for g, w in zip(got_grads, want_grads, strict=True):
-        assert float((g - w).abs().max() / w.abs().max()) < 1e-5
+    assert_evidence_equals_gpytorchs(model, value_tol=1e-9)
 
 
 def test_a_fit_through_the_closed_form_reaches_gpytorchs_optimum():
