@@ -42,6 +42,19 @@ def first_success(successes: Sequence[bool | int]) -> int | None:
     return next((i for i, s in enumerate(successes) if s), None)
 
 
+def relapses(successes: Sequence[bool | int]) -> int | None:
+    """Episodes after the first success that fail the success test, or None without a success."""
+    first = first_success(successes)
+    return None if first is None else sum(not s for s in successes[first + 1:])
+
+
+def final_successes(successes: Sequence[bool | int], last: int = FINAL_EPISODES) -> int:
+    """Successful episodes among the last ``last`` (Table 1's episodes; 0 of them: the paper's "NC")."""
+    if len(successes) == 0:
+        raise ValueError("a learning curve needs at least one episode")
+    return sum(bool(s) for s in successes[-last:])
+
+
 @dataclass(frozen=True)
 class Curve:
     """One run's learning curve, read from its ``metrics.csv``."""

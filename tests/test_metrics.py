@@ -4,7 +4,15 @@ from __future__ import annotations
 
 import pytest
 
-from qtl.metrics import Curve, area_under_curve, final_performance, first_success, time_to_convergence
+from qtl.metrics import (
+    Curve,
+    area_under_curve,
+    final_performance,
+    final_successes,
+    first_success,
+    relapses,
+    time_to_convergence,
+)
 
 RETURNS = [0.0, 2.0, 10.0, 30.0, 36.0, 38.0, 37.0]
 
@@ -31,6 +39,22 @@ def test_time_to_convergence_is_the_first_episode_at_95_percent_of_final():
 def test_first_success():
     assert first_success([0, 0, 1, 0, 1]) == 2
     assert first_success([False, False]) is None
+
+
+def test_relapses_count_the_failures_after_the_first_success():
+    assert relapses([0, 0, 1, 0, 1, 1, 0]) == 2  # episodes 3 and 6
+    assert relapses([0, 1, 1, 1]) == 0
+    assert relapses([True]) == 0
+    assert relapses([0, 0, 0]) is None  # no success: nothing to relapse from
+
+
+def test_final_successes_count_the_last_three_episodes():
+    assert final_successes([1, 1, 1, 0, 1, 0]) == 1
+    assert final_successes([0, 1, 1, 1]) == 3
+    assert final_successes([1, 0]) == 1  # a curve shorter than three: all of it
+    assert final_successes([1, 1, 0, 1, 1], last=2) == 2
+    with pytest.raises(ValueError, match="at least one episode"):
+        final_successes([])
 
 
 def test_curve_reads_a_prefix_of_metrics_csv(tmp_path):

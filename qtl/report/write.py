@@ -32,6 +32,7 @@ from qtl.report.stats import (
     seed_values,
     std_or_none,
 )
+from qtl.report.successes import success_json, success_markdown
 from qtl.report.tables import REWARD_DIGITS, TITLES, markdown, table_numbers, tables_markdown
 
 logger = logging.getLogger(__name__)
@@ -81,6 +82,7 @@ def tables_json(experiment: Experiment) -> dict[str, object]:
                        for label, row in compliance_table(experiment).iterrows()},
         "tables": {str(n): TITLES[n].format(label=experiment.labels[0]) for n in table_numbers(experiment)},
         "reference": None if reference is None else reference.to_dict(),
+        "successes": success_json(experiment),
         "reliability": reliability_json(experiment),
     }
 
@@ -133,7 +135,7 @@ def _commands_markdown(experiment: Experiment) -> str:
 
 
 def report_markdown(experiment: Experiment, figures: Sequence[Path]) -> str:
-    """``report.md``: what was found, Tables 1-6, the learning curves, the reliability counts and the commands."""
+    """``report.md``: what was found, Tables 1-6 and S1-S3, the learning curves, reliability counts and commands."""
     title = experiment.name or experiment.root.name
     png, *others = figures
     caption = "Learning curves: mean total reward per episode over seeds, error bars ±1 standard deviation."
@@ -144,6 +146,8 @@ def report_markdown(experiment: Experiment, figures: Sequence[Path]) -> str:
         f"# QTL-PILCO report: {title}",
         "## What was found\n\n" + _found_markdown(experiment),
         "## Tables\n\n" + "\n\n".join(tables_markdown(experiment)),
+        "## Successes (not in the paper)\n\nFrom each episode's success test, over the same episodes as "
+        "Tables 1-3.\n\n" + "\n\n".join(success_markdown(experiment)),
         f"## Learning curves\n\n![learning curves]({png.name})\n\n{caption} "
         + " ".join(f"[{p.suffix[1:].upper()}]({p.name})" for p in others),
         "## Reliability\n\nOver every run " + ("in the tables" if experiment.left_out else "found")
