@@ -1,0 +1,148 @@
+"""The final policy of every finished run, tried from the same K start states on the real system.
+
+Table 1's final performance is the mean return of a run's last 3 episodes: 3 start states per seed, shared by
+every run of that seed, so one hard start in them moves a whole column (see ``scripts/relapse_starts.py``).
+This script loads each run's newest checkpoint (the policy that ran its last episode), runs it on the run's
+own task from K start states x_0 ~ N(μ_0, Σ_0) drawn once for all runs (``--eval-seed``; none of them is a
+training episode's), and reports per approach and target the success rate and mean return over those starts,
+mean ± std over seeds. No model is fitted and nothing in the run directories is written.
+
+    python scripts/evaluate_policies.py docs/experiments/cartpole --finished-only --starts 100 \\
+        --output docs/experiments/cartpole/final_policies.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import torch
+from omegaconf import OmegaConf
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+import envs  # noqa: E402,F401  (registers the qtl/ environments)
+from qtl.build import build  # noqa: E402
+from qtl.checkpoint import latest_checkpoint, load_checkpoint  # noqa: E402
+from qtl.episodes import run_episode  # noqa: E402
+from qtl.report.approaches import approach_name  # noqa: E402
+from qtl.report.discover import discover  # noqa: E402
+from qtl.report.tables import MISSING, markdown, seed_counts, stat_text  # noqa: E402
+from qtl.seeding import ENV_STREAM, derive_seed  # noqa: E402
+
+SOURCE = "source"
+EVAL_SEED = 1_000_003  # the start states' seed: not a run seed of any sweep, so no start is a training episode's
+
+
+@dataclass(frozen=True)
+class Evaluation:
+    """One run's final policy over the K start states."""
+
+    approach: str
+    label: str
+    seed: int
+    episode: int  # the checkpoint's episode: the last one the policy ran
+    success_rate: float
+    mean_return: float
+    returns: list[float]
+
+
+def evaluate_run(approach: str, label: str, seed: int, run_dir: Path, episodes: int, starts: int,
+                 eval_seed: int) -> Evaluation:
+    """Run the policy of ``run_dir``'s newest checkpoint from ``starts`` start states on its own task."""
+    checkpoint = load_checkpoint(latest_checkpoint(run_dir))
+    if checkpoint["episode"] + 1 != episodes:
+        raise SystemExit(f"{run_dir}: its newest checkpoint is of episode {checkpoint['episode']}, its metrics.csv "
+                         f"has {episodes} episodes; resume the run (resume=auto) so that the two agree")
+    cfg = OmegaConf.create(checkpoint["config"])
+    cfg.device = "cpu"
+    parts = build(cfg)
+    policy = parts.initial_policy()
+    policy.load_state_dict(checkpoint["policy"])
+    actor = parts.actor(policy)
+    returns, successes = [], []
+    with parts.task.make_env() as env, torch.no_grad():
+        for k in range(starts):
+            episode = run_episode(env, parts.task, actor, derive_seed(eval_seed, k, ENV_STREAM))
+            returns.append(float(episode.rewards.sum()))
+            successes.append(parts.task.succeeded(episode.states))
+    return Evaluation(approach, label, seed, int(checkpoint["episode"]), float(np.mean(successes)),
+                      float(np.mean(returns)), returns)
+
+
+def evaluate(root: Path, finished_only: bool, starts: int, eval_seed: int) -> list[Evaluation]:
+    """Every run's final policy: the sources' (approach and label ``source``) first, then the targets'."""
+    experiment = discover(root, finished_only=finished_only)
+    runs = [(SOURCE, SOURCE, seed, experiment.source_dirs[seed], len(curve.returns))
+            for seed, curve in experiment.sources.items()]
+    runs += [(approach, label, seed, cell.run_dirs[seed], cell.lengths[seed])
+             for approach, by_label in experiment.cells.items() for label, cell in by_label.items()
+             for seed in cell.seeds]
+    found = []
+    for approach, label, seed, run_dir, episodes in runs:
+        tic = time.perf_counter()
+        found.append(evaluate_run(approach, label, seed, run_dir, episodes, starts, eval_seed))
+        print(f"{run_dir.relative_to(experiment.root)}: success {found[-1].success_rate:.0%}, mean return "
+              f"{found[-1].mean_return:.2f} ({time.perf_counter() - tic:.1f} s)", file=sys.stderr)
+    return found
+
+
+def summary_markdown(frame: pd.DataFrame, column: str, digits: int, percent: bool) -> str:
+    """Rows approaches, columns labels: ``mean ± std`` over seeds of ``column``, seeds per row."""
+    groups = frame.groupby(["approach", "label"], sort=False)[column]
+    stats = pd.DataFrame({"mean": groups.mean(), "std": groups.std(ddof=1), "n": groups.size()})
+    scale = 100.0 if percent else 1.0
+    text = pd.Series([stat_text(m * scale, s * scale, digits) + (" %" if percent else "")
+                      for m, s in zip(stats["mean"], stats["std"], strict=True)], index=stats.index)
+    approaches = list(dict.fromkeys(frame["approach"]))
+    labels = list(dict.fromkeys(frame["label"]))
+    grid = text.unstack("label").reindex(index=approaches, columns=labels).fillna(MISSING)
+    seeds = stats["n"].groupby(level="approach", sort=False).agg(lambda n: seed_counts(list(n)))
+    grid.insert(0, "Approach", [a if a == SOURCE else approach_name(a) for a in grid.index])
+    grid["Seeds"] = seeds.reindex(grid.index)
+    return markdown(grid)
+
+
+def report(evaluations: list[Evaluation], starts: int) -> str:
+    """The two tables: success rate and mean return of the final policies over the start states."""
+    if not evaluations:
+        return "No finished run to evaluate.\n"
+    frame = pd.DataFrame([asdict(e) for e in evaluations])
+    return (f"Final policies from the same {starts} start states: success rate, mean ± std over seeds.\n\n"
+            + summary_markdown(frame, "success_rate", 0, percent=True)
+            + f"\n\nMean return over the {starts} start states, mean ± std over seeds.\n\n"
+            + summary_markdown(frame, "mean_return", 2, percent=False) + "\n")
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Parse the arguments, evaluate the final policies, print the tables (and write JSON)."""
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("root", type=Path, help="an experiment directory (as scripts/run_experiment.py leaves it)")
+    parser.add_argument("--finished-only", action="store_true", help="leave out runs short of their episodes")
+    parser.add_argument("--starts", type=int, default=100, help="start states per policy (default 100)")
+    parser.add_argument("--eval-seed", type=int, default=EVAL_SEED, help="seed of the start states")
+    parser.add_argument("--output", type=Path, help="also write every run's numbers as JSON here")
+    args = parser.parse_args(argv)
+    if not args.root.is_dir():
+        parser.error(f"{args.root} is not a directory: give an experiment directory")
+    if args.starts < 1:
+        parser.error(f"--starts {args.starts}: give at least one start state")
+    torch.set_num_threads(1)
+    evaluations = evaluate(args.root, args.finished_only, args.starts, args.eval_seed)
+    print(report(evaluations, args.starts), end="")
+    if args.output is not None:
+        args.output.parent.mkdir(parents=True, exist_ok=True)
+        numbers = {"starts": args.starts, "eval_seed": args.eval_seed,
+                   "runs": [asdict(e) for e in evaluations]}
+        args.output.write_text(json.dumps(numbers, indent=2, allow_nan=False) + "\n")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,68 @@
+"""``scripts/evaluate_policies.py`` on a real (tiny) run: its final policy replayed from chosen start states."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from qtl.loop import run
+from tests.helpers import tiny_config
+
+pytestmark = pytest.mark.e2e  # runs the real script in a subprocess
+
+ROOT = Path(__file__).resolve().parents[2]
+SCRIPT = ROOT / "scripts" / "evaluate_policies.py"
+SEED = 3
+
+
+def _call(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, str(SCRIPT), *args], capture_output=True, text=True, timeout=300,
+                          env={**os.environ, "OMP_NUM_THREADS": "1"})
+
+
+@pytest.fixture(scope="module")
+def experiment(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """An experiment directory with one finished target run: 1 random + 1 learned episode."""
+    root = tmp_path_factory.mktemp("exp")
+    run(tiny_config("episodes=1", f"seed={SEED}"), root / "target" / "pilco" / "m0.5" / f"seed_{SEED}")
+    return root
+
+
+def test_replays_the_last_episode_from_its_own_start(experiment: Path, tmp_path: Path) -> None:
+    # With the run's own seed as --eval-seed, start 1 is the start state of the run's episode 1, which the
+    # checkpointed (final) policy ran: the replay must give that episode's return and success exactly.
+    output = tmp_path / "eval.json"
+    done = _call(str(experiment), "--starts", "3", "--eval-seed", str(SEED), "--output", str(output))
+    assert done.returncode == 0, done.stderr[-3000:]
+    (evaluation,) = json.loads(output.read_text())["runs"]
+    with open(experiment / "target" / "pilco" / "m0.5" / f"seed_{SEED}" / "metrics.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert (evaluation["approach"], evaluation["label"], evaluation["seed"]) == ("pilco", "m0.5", SEED)
+    assert evaluation["episode"] == len(rows) - 1 == 1
+    assert evaluation["returns"][1] == pytest.approx(float(rows[1]["return"]), rel=1e-12)
+    assert len(set(evaluation["returns"])) == 3  # three different start states
+    assert 0.0 <= evaluation["success_rate"] <= 1.0
+    assert "PILCO (γ = 0)" in done.stdout and "Final policies from the same 3 start states" in done.stdout
+
+
+def test_the_default_starts_are_reproducible_and_not_the_runs_own(experiment: Path, tmp_path: Path) -> None:
+    first, second = (_call(str(experiment), "--starts", "2", "--output", str(tmp_path / f"{i}.json")) for i in (1, 2))
+    assert first.returncode == 0 and second.returncode == 0, first.stderr[-3000:]
+    runs = [json.loads((tmp_path / f"{i}.json").read_text())["runs"][0]["returns"] for i in (1, 2)]
+    assert runs[0] == runs[1]
+    own = _call(str(experiment), "--starts", "2", "--eval-seed", str(SEED), "--output", str(tmp_path / "own.json"))
+    assert own.returncode == 0, own.stderr[-3000:]
+    assert json.loads((tmp_path / "own.json").read_text())["runs"][0]["returns"] != runs[0]  # other start states
+
+
+def test_bad_arguments_are_refused_in_one_line(tmp_path: Path) -> None:
+    assert _call(str(tmp_path / "nope")).stderr.strip().splitlines()[-1].endswith(
+        "is not a directory: give an experiment directory")
+    assert _call(str(tmp_path), "--starts", "0").stderr.strip().splitlines()[-1].endswith(
+        "give at least one start state")
