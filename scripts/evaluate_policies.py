@@ -32,9 +32,8 @@ import envs  # noqa: E402,F401  (registers the qtl/ environments)
 from qtl.build import build  # noqa: E402
 from qtl.checkpoint import latest_checkpoint, load_checkpoint  # noqa: E402
 from qtl.episodes import run_episode  # noqa: E402
-from qtl.report.approaches import approach_name  # noqa: E402
 from qtl.report.discover import discover  # noqa: E402
-from qtl.report.tables import MISSING, markdown, seed_counts, stat_text  # noqa: E402
+from qtl.report.tables import approach_grid, stat_text  # noqa: E402
 from qtl.seeding import ENV_STREAM, derive_seed  # noqa: E402
 
 SOURCE = "source"
@@ -101,13 +100,7 @@ def summary_markdown(frame: pd.DataFrame, column: str, digits: int, percent: boo
     scale = 100.0 if percent else 1.0
     text = pd.Series([stat_text(m * scale, s * scale, digits) + (" %" if percent else "")
                       for m, s in zip(stats["mean"], stats["std"], strict=True)], index=stats.index)
-    approaches = list(dict.fromkeys(frame["approach"]))
-    labels = list(dict.fromkeys(frame["label"]))
-    grid = text.unstack("label").reindex(index=approaches, columns=labels).fillna(MISSING)
-    seeds = stats["n"].groupby(level="approach", sort=False).agg(lambda n: seed_counts(list(n)))
-    grid.insert(0, "Approach", [a if a == SOURCE else approach_name(a) for a in grid.index])
-    grid["Seeds"] = seeds.reindex(grid.index)
-    return markdown(grid)
+    return approach_grid(text, stats["n"], list(dict.fromkeys(frame["approach"])), list(dict.fromkeys(frame["label"])))
 
 
 def report(evaluations: list[Evaluation], starts: int) -> str:

@@ -33,6 +33,7 @@ sys.path.insert(0, str(ROOT))
 
 import envs  # noqa: E402,F401  (registers the qtl/ environments)
 from qtl.checkpoint import latest_checkpoint, load_checkpoint  # noqa: E402
+from qtl.metrics import first_success  # noqa: E402
 from qtl.report.discover import discover  # noqa: E402
 from qtl.report.tables import markdown  # noqa: E402
 
@@ -76,7 +77,7 @@ def chi2_cdf(square: float, dof: int) -> float:
 
 def run_episodes(approach: str, label: str, seed: int, run_dir: Path, successes: list[bool]) -> list[Episode]:
     """The episodes after the first success of one run (its first ``len(successes)`` episodes)."""
-    first = next((i for i, s in enumerate(successes) if s), None)
+    first = first_success(successes)
     if first is None:
         return []
     states = load_checkpoint(latest_checkpoint(run_dir))["dataset"]["states"]

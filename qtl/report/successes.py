@@ -12,10 +12,9 @@ from collections.abc import Callable, Sequence
 import pandas as pd
 
 from qtl.metrics import FINAL_EPISODES, final_successes, first_success, relapses
-from qtl.report.approaches import approach_name
 from qtl.report.discover import Experiment
 from qtl.report.stats import CELL_KEYS, VALUE, per_seed, std_or_none
-from qtl.report.tables import EPISODE_DIGITS, MISSING, markdown, seed_counts, stat_text
+from qtl.report.tables import EPISODE_DIGITS, MISSING, approach_grid, stat_text
 
 SUCCESS_METRICS: dict[str, Callable[[Sequence[bool]], int | None]] = {
     "first_success": first_success,  # Table S1
@@ -75,11 +74,8 @@ def success_markdown(experiment: Experiment) -> list[str]:
     for metric in SUCCESS_METRICS:
         stats = success_table(values[values["metric"] == metric])
         text = pd.Series([_cell_text(metric, row) for _, row in stats.iterrows()], index=stats.index)
-        grid = text.unstack("label").reindex(index=experiment.approaches, columns=experiment.labels).fillna(MISSING)
-        seeds = stats["seeds"].groupby(level="approach", sort=False).agg(lambda n: seed_counts(list(n)))
-        grid.insert(0, "Approach", [approach_name(a) for a in grid.index])
-        grid["Seeds"] = seeds.reindex(grid.index)
-        tables.append(SUCCESS_TITLES[metric] + "\n\n" + markdown(grid))
+        grid = approach_grid(text, stats["seeds"], experiment.approaches, experiment.labels)
+        tables.append(SUCCESS_TITLES[metric] + "\n\n" + grid)
     return tables
 
 

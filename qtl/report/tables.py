@@ -65,11 +65,17 @@ def metric_markdown(experiment: Experiment, number: int, metric: str) -> str:
     digits = EPISODE_DIGITS if whole else REWARD_DIGITS
     text = pd.Series([stat_text(m, s, digits, whole) for m, s in zip(stats["mean"], stats["std"], strict=True)],
                      index=stats.index)
-    grid = text.unstack("label").reindex(index=experiment.approaches, columns=experiment.labels).fillna(MISSING)
-    seeds = stats["n"].groupby(level="approach", sort=False).agg(lambda n: seed_counts(list(n)))
+    return table_heading(number) + "\n\n" + approach_grid(text, stats["n"], experiment.approaches, experiment.labels)
+
+
+def approach_grid(text: pd.Series, seeds: pd.Series, approaches: Sequence[str], labels: Sequence[str]) -> str:
+    """A markdown table of cell ``text`` indexed by (approach, label): rows approaches by the paper's names,
+    columns labels (a dash where a cell is missing), and the seeds per row from ``seeds`` (same index)."""
+    grid = text.unstack("label").reindex(index=list(approaches), columns=list(labels)).fillna(MISSING)
+    counts = seeds.groupby(level="approach", sort=False).agg(lambda n: seed_counts(list(n)))
     grid.insert(0, "Approach", [approach_name(a) for a in grid.index])
-    grid["Seeds"] = seeds.reindex(grid.index)
-    return table_heading(number) + "\n\n" + markdown(grid)
+    grid["Seeds"] = counts.reindex(grid.index)
+    return markdown(grid)
 
 
 def compliance_markdown(experiment: Experiment) -> str | None:
