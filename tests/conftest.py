@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Callable, Sequence
 
 import pytest
@@ -13,6 +14,13 @@ from qtl.features import AngleFeatures
 from qtl.gaussian import MomentMatch
 from qtl.kernels import exp_sum, formulation
 from qtl.models import DynamicsGP, GPHyperparameters, GPPosteriorCache
+
+# Under pytest-xdist (`pytest -n 2`, the README's command) each worker gets one torch thread, and the
+# subprocesses it starts inherit OMP_NUM_THREADS=1: two workers then share the two cores instead of
+# four threads fighting for them. A test that wants threads sets them itself.
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    os.environ["OMP_NUM_THREADS"] = "1"
+    torch.set_num_threads(1)
 
 DTYPE = torch.float64
 # Monte Carlo acceptance rule: an analytic moment passes when it lies within MC_Z standard
