@@ -101,10 +101,19 @@ class RunRecorder:
         self.rows: list[dict[str, Any]] = [dict(r) for r in rows]
         self.timings: list[dict[str, Any]] = [dict(t) for t in timings]
         self.health: list[dict[str, Any]] = [dict(h) for h in health]
-        self.writer = SummaryWriter(log_dir=str(self.output_dir), purge_step=len(self.rows) if self.rows else None)
+        self._purge_step = len(self.rows) if self.rows else None
+        self._writer: SummaryWriter | None = None
+        self.output_dir.mkdir(parents=True, exist_ok=True)
         _write_csv(self.output_dir / METRICS_FILE, self.columns, self.rows)
         _write_csv(self.output_dir / TIMINGS_FILE, TIMING_COLUMNS, self.timings)
         _write_csv(self.output_dir / HEALTH_FILE, HEALTH_COLUMNS, self.health)
+
+    @property
+    def writer(self) -> SummaryWriter:
+        """The TensorBoard writer, opened at first use: resuming a finished run leaves no empty events file."""
+        if self._writer is None:
+            self._writer = SummaryWriter(log_dir=str(self.output_dir), purge_step=self._purge_step)
+        return self._writer
 
     def record(
         self,
@@ -150,8 +159,9 @@ class RunRecorder:
         self.writer.flush()
 
     def close(self) -> None:
-        """Flush and close the TensorBoard writer."""
-        self.writer.close()
+        """Flush and close the TensorBoard writer, if one was opened."""
+        if self._writer is not None:
+            self._writer.close()
 
 
 def _write_csv(path: Path, columns: Sequence[str], rows: Sequence[dict[str, Any]]) -> None:

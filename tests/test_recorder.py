@@ -130,3 +130,18 @@ def test_env_return_and_an_estimated_start_reach_metrics_and_tensorboard_and_old
     logged = scalars(tmp_path)
     assert logged["eval/env_return"] == [(1, -12.25)]
     assert logged["start/mean/0"] == [(1, pytest.approx(3.1))] and logged["start/std/0"] == [(1, pytest.approx(0.05))]
+
+
+def test_a_resumed_recorder_with_nothing_to_record_writes_no_events_file(tmp_path):
+    recorder = RunRecorder(tmp_path, COLUMNS)
+    try:
+        recorder.record(episode_row(0, None), {"model_fit_s": 0.0, "policy_search_s": 0.0})
+    finally:
+        recorder.close()
+    events = sorted(tmp_path.glob("events.out.tfevents*"))
+    assert len(events) == 1
+    finished = RunRecorder(tmp_path, COLUMNS, rows=read_csv(tmp_path / METRICS_FILE),
+                           timings=read_csv(tmp_path / TIMINGS_FILE))  # a sweep resuming a finished run
+    finished.close()
+    assert sorted(tmp_path.glob("events.out.tfevents*")) == events
+    assert scalars(tmp_path)["eval/return"] == [(0, 0.5)]
