@@ -1,6 +1,7 @@
 """Smoke test of ``scripts/bench_policy_search.py``: its smallest configuration, writing nothing under docs/.
 
-The smallest configuration includes the backend x restarts comparison (issue 18) at n = 60.
+Two tests, which pytest-xdist can run side by side: the propagators (``--no-compare``), and the backend x
+restarts comparison of issue 18 (``--compare-only``), both at n = 60.
 """
 
 from __future__ import annotations
@@ -24,19 +25,25 @@ TINY = [
 ]
 
 
-def test_smallest_configuration_measures_both_propagators_without_touching_docs(tmp_path: Path) -> None:
-    """Both propagators (particles: marginal, pathwise) and the comparison variants timed at n = 60; docs/ unchanged."""
+def run_tiny(tmp_path: Path, *options: str) -> tuple[subprocess.CompletedProcess, dict]:
+    """The smallest configuration with ``options``: the finished process and its JSON report; docs/ unchanged."""
     docs = ROOT / "docs" / "benchmarks.md"
     before = docs.read_bytes() if docs.exists() else None
     output = tmp_path / "policy_search.json"
     done = subprocess.run(
-        [sys.executable, str(SCRIPT), *TINY, "--output", str(output), "--cache-dir", str(tmp_path / "cache"),
-         "--no-docs"],
+        [sys.executable, str(SCRIPT), *TINY, *options, "--output", str(output), "--cache-dir",
+         str(tmp_path / "cache"), "--no-docs"],
         capture_output=True, text=True, timeout=300, env={**os.environ, "OMP_NUM_THREADS": "1"},
     )
     assert done.returncode == 0, done.stderr[-3000:]
     assert (docs.read_bytes() if docs.exists() else None) == before
-    report = json.loads(output.read_text())
+    assert list((tmp_path / "cache").glob("*.pt"))
+    return done, json.loads(output.read_text())
+
+
+def test_smallest_configuration_measures_both_propagators_without_touching_docs(tmp_path: Path) -> None:
+    """Both propagators (particles: marginal, pathwise) timed at n = 60, no comparison; docs/ unchanged."""
+    done, report = run_tiny(tmp_path, "--no-compare")
     assert [(r["propagator"], r["n"], r["dtype"]) for r in report["results"]] == [
         ("moment_matching", 60, "float64"), ("particles", 60, "float64"), ("particles_pathwise", 60, "float64")]
     for row in report["results"]:
@@ -63,10 +70,15 @@ def test_smallest_configuration_measures_both_propagators_without_touching_docs(
     assert 0 < particles["variance_products_s_per_evaluation"] < particles["rollout_grad_s_median"]
     assert "arithmetic floor" in done.stdout and "s for 3 steps" in done.stdout
     assert not report["judged"]
-    assert report["models"]["60"]["n"] == 60 and list((tmp_path / "cache").glob("*.pt"))
+    assert report["models"]["60"]["n"] == 60 and report["comparison"] == []
     assert "## Policy search" in done.stdout and "not measured here" in done.stdout
+    assert "### Exp sums torch vs native" not in done.stdout
 
-    # The comparison: the COMPARE_VARIANTS of backend x restarts x formulation, ratios against the reference path.
+
+def test_smallest_comparison_times_every_variant_against_the_reference_path(tmp_path: Path) -> None:
+    """``--compare-only``: each COMPARE_VARIANTS row (backend x restarts x formulation) at n = 60, with its ratio."""
+    done, report = run_tiny(tmp_path, "--compare-only")
+    assert report["results"] == [] and report["models"]["60"]["n"] == 60
     rows = {(r["backend"], r["batched"], r["moments"]): r for r in report["comparison"]}
     assert sorted(rows) == sorted([
         ("torch", False, "reference"), ("torch", True, "reference"), ("native", False, "reference"),
