@@ -2,6 +2,7 @@
 
 ``discover`` reads the runs (:mod:`~qtl.report.discover`), :mod:`~qtl.report.stats` computes mean ± std
 over seeds with pandas, :mod:`~qtl.report.tables` and :mod:`~qtl.report.figures` draw them,
+:mod:`~qtl.report.paper` holds the paper's published numbers to set beside them,
 :mod:`~qtl.report.autopilot` records the helicopter's reference line when the experiment runs, and
 ``write_report`` puts ``report.md``, ``tables.json`` and the figure together.
 """

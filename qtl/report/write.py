@@ -20,6 +20,7 @@ from qtl.report.approaches import approach_name
 from qtl.report.autopilot import flies_helicopter
 from qtl.report.discover import OVERRIDES_FILE, SEED_PREFIX, Experiment, discover, run_overrides
 from qtl.report.figures import FIGURE_STEM, plot_learning_curves
+from qtl.report.paper import beside_paper_markdown, paper_json
 from qtl.report.record import EXPERIMENT_FILE
 from qtl.report.reliability import reliability_json, reliability_markdown
 from qtl.report.stats import (
@@ -82,6 +83,7 @@ def tables_json(experiment: Experiment) -> dict[str, object]:
                        for label, row in compliance_table(experiment).iterrows()},
         "tables": {str(n): TITLES[n].format(label=experiment.labels[0]) for n in table_numbers(experiment)},
         "reference": None if reference is None else reference.to_dict(),
+        "paper": paper_json(experiment),
         "successes": success_json(experiment),
         "reliability": reliability_json(experiment),
     }
@@ -135,17 +137,20 @@ def _commands_markdown(experiment: Experiment) -> str:
 
 
 def report_markdown(experiment: Experiment, figures: Sequence[Path]) -> str:
-    """``report.md``: what was found, Tables 1-6 and S1-S3, the learning curves, reliability counts and commands."""
+    """``report.md``: what was found, Tables 1-6 (and beside the paper's), S1-S3, the learning curves, reliability
+    counts and commands."""
     title = experiment.name or experiment.root.name
     png, *others = figures
     caption = "Learning curves: mean total reward per episode over seeds, error bars ±1 standard deviation."
     reference = experiment.reference
+    beside = beside_paper_markdown(experiment)
     if reference is not None:
         caption += f" Dashed: the {reference.name}'s total reward ({reference.total:.{REWARD_DIGITS}f})."
     sections = [
         f"# QTL-PILCO report: {title}",
         "## What was found\n\n" + _found_markdown(experiment),
         "## Tables\n\n" + "\n\n".join(tables_markdown(experiment)),
+        *([] if beside is None else ["## Beside the paper\n\n" + beside]),
         "## Successes (not in the paper)\n\nFrom each episode's success test, over the same episodes as "
         "Tables 1-3.\n\n" + "\n\n".join(success_markdown(experiment)),
         f"## Learning curves\n\n![learning curves]({png.name})\n\n{caption} "
