@@ -2,7 +2,8 @@
 
 The values are transcribed from the paper's tables as printed: ``NC`` is its "no convergence" and
 ``unknown`` its "Unknown" (Table 3, where a run did not converge). A cell of a "beside the paper" table
-reads ``here · paper``: this experiment's mean ± std over seeds, then the paper's value.
+reads ``here · paper``: this experiment's mean ± std over seeds, then the paper's value (to the report's
+decimals).
 """
 
 from __future__ import annotations
@@ -158,13 +159,13 @@ def beside_paper_markdown(experiment: Experiment) -> str | None:
         heading = f"**Table {number} beside the paper.** {title}"
         note = _NOTES.get(metric)
         tables.append(heading + (f" {note}" if note else "") + "\n\n" + _metric_beside(experiment, metric, paper))
+    if tables:
+        tables.insert(0, f"Each cell: this experiment's mean ± std over seeds{BESIDE}the paper's value ({NC}: no "
+                         f"convergence; {UNKNOWN}: the paper's \"Unknown\"; {MISSING}: not in this experiment or not "
+                         f"in the paper). In the final performance, ({NC} k/n) after a mean: k of its n seeds pass no "
+                         "success test in the episodes it averages (Table S3's 0).")
     if name in PAPER_COMPLIANCE:
         compliance = _compliance_beside(experiment, PAPER_COMPLIANCE[name])
         if compliance is not None:
             tables.append(compliance)
-    if not tables:
-        return None
-    return (f"Each cell: this experiment's mean ± std over seeds{BESIDE}the paper's value as printed ({NC}: no "
-            f"convergence; {UNKNOWN}: the paper's \"Unknown\"; {MISSING}: not in this experiment or not in the "
-            f"paper). In the final performance, ({NC} k/n) after a mean: k of its n seeds succeed in none of the "
-            "episodes it averages (Table S3's 0).\n\n" + "\n\n".join(tables))
+    return "\n\n".join(tables) if tables else None

@@ -94,7 +94,7 @@ def test_mountaincar_compliance_sits_beside_table_4(tmp_path):
     rows = table_rows(section)
     assert ("p0.5", "0.70 ± 0.14", "0.64", "2") in rows  # Bayesian runs' last compliance
     assert ("p3.0", "0.25", "0.34", "1") in rows  # PILCO's, the one seed with compliance there
-    assert "Table 1 beside" not in section  # the paper gives Fig. 2 as curves only
+    assert "Table 1 beside" not in section and "Each cell" not in section  # Fig. 2 is curves only
     assert tables["paper"]["compliance"] == PAPER_COMPLIANCE["mountaincar"]
 
 
