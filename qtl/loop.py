@@ -104,11 +104,16 @@ def run(cfg: DictConfig, output_dir: Path, *, resume: bool = False) -> RunResult
             plan.load_state_dict(checkpoint["transfer"])
         first = checkpoint["episode"] + 1
         set_rng_state(checkpoint["rng"])
-        log.info("resuming %s after episode %d", output_dir, checkpoint["episode"])
+        if first >= total:  # e.g. a sweep resuming all its runs: one line, not the resume and transfer lines
+            log.info("%s finished already (it holds %d episodes, the budget is %d): nothing to run",
+                     output_dir, first, total)
+        else:
+            log.info("resuming %s after episode %d", output_dir, checkpoint["episode"])
     columns = (BASE_COLUMNS + theta_columns(task.state_dim, task.gp_input_dim)
                + theta_columns(task.state_dim, task.gp_input_dim, THETA_P_PREFIX)
                + (start_columns(task.state_dim) if task.start_estimated else []))
-    log.info("%s", plan.describe())
+    if first < total:
+        log.info("%s", plan.describe())
     recorder = RunRecorder(output_dir, columns, rows, timings, health_rows)
     if not rows:  # HParams session, chart layout, config and plan: once per run, not again on resume
         start_dashboards(recorder.writer, cfg, task, plan)

@@ -86,12 +86,17 @@ def test_resume_continues_exactly_as_an_uninterrupted_run(tmp_path, model):
         torch.testing.assert_close(a["policy"][name], b["policy"][name], rtol=0, atol=0)
 
 
-def test_a_run_keeping_one_checkpoint_resumes_as_a_run_keeping_all(tmp_path):
+def test_a_run_keeping_one_checkpoint_resumes_as_a_run_keeping_all(tmp_path, caplog):
     run(tiny_config("episodes=2"), tmp_path / "all")
     run(tiny_config("episodes=1", "keep_checkpoints=1"), tmp_path / "one")
     assert [p.name for p in (tmp_path / "one" / "checkpoints").iterdir()] == ["episode_0001.pt"]
     run(tiny_config("episodes=2", "keep_checkpoints=1"), tmp_path / "one", resume=True)
     assert [p.name for p in (tmp_path / "one" / "checkpoints").iterdir()] == ["episode_0002.pt"]
+    assert (tmp_path / "all" / "metrics.csv").read_text() == (tmp_path / "one" / "metrics.csv").read_text()
+    with caplog.at_level("INFO", logger="qtl.loop"):  # resuming a finished run: one line and nothing else
+        run(tiny_config("episodes=2", "keep_checkpoints=1"), tmp_path / "one", resume=True)
+    assert [r.getMessage().split(" ", 1)[1] for r in caplog.records] == [
+        "finished already (it holds 3 episodes, the budget is 3): nothing to run"]
     assert (tmp_path / "all" / "metrics.csv").read_text() == (tmp_path / "one" / "metrics.csv").read_text()
 
 
