@@ -18,6 +18,7 @@ from qtl.report.successes import success_values
 from qtl.report.tables import (
     COMPLIANCE_DIGITS,
     EPISODE_DIGITS,
+    METRIC_TABLES,
     MISSING,
     REWARD_DIGITS,
     TITLES,
@@ -88,6 +89,7 @@ PAPER_SOURCE: dict[str, dict[str, int]] = {  # experiment -> metric -> the paper
 # experiment name -> label -> task compliance (Table 4: mountain car, engine power relative to the source's).
 PAPER_COMPLIANCE: dict[str, dict[str, float]] = {"mountaincar": {"p0.5": 0.64, "p1.5": 0.76, "p3.0": 0.34}}
 
+_OWN_TABLE = {metric: number for number, metric in METRIC_TABLES}  # metric -> this report's table (its title)
 _DIGITS = {"final_performance": REWARD_DIGITS, "auc": REWARD_DIGITS, "time_to_convergence": EPISODE_DIGITS}
 _NOTES = {
     "auc": ("The paper does not say over which episodes, at what spacing or with which reward its areas are "
@@ -155,7 +157,7 @@ def beside_paper_markdown(experiment: Experiment) -> str | None:
     tables = []
     for metric, paper in PAPER.get(name, {}).items():
         number = PAPER_SOURCE[name][metric]
-        title = TITLES[{"final_performance": 1, "auc": 2, "time_to_convergence": 3}[metric]]
+        title = TITLES[_OWN_TABLE[metric]]
         heading = f"**Table {number} beside the paper.** {title}"
         note = _NOTES.get(metric)
         tables.append(heading + (f" {note}" if note else "") + "\n\n" + _metric_beside(experiment, metric, paper))
