@@ -1,8 +1,10 @@
 """Re-run one policy search on a finished run's data, with other settings, and try the result on the real system.
 
 A diagnostic for a run that stopped improving: the model is refitted on the run's data (its last checkpoint
-or ``--checkpoint``) with the run's model settings, the search starts from the run's last policy (or from a
-fresh ψ_0 with ``--fresh``) and uses the run's config with the given Hydra overrides (e.g.
+or ``--checkpoint``) with the run's model settings as the run's next episode would fit it (warm-started from
+the checkpoint's fit, with the run's random stream; θ_p, not a transfer rule's θ), the search starts from the
+run's last policy (or from a fresh ψ_0 with ``--fresh``) and uses the run's config with the given Hydra
+overrides (e.g.
 ``propagation=moment_matching``, ``optimizer=adam optimizer.steps=400``). Printed: the predicted return
 before and after, each search run's best value, evaluations, wall time, and the returns of ``--episodes``
 real episodes of the found policy (their success by the task's test).
@@ -27,7 +29,9 @@ from qtl.checkpoint import latest_checkpoint, load_checkpoint
 from qtl.config import GROUP_SCHEMAS, typed_groups
 from qtl.data import TransitionDataset
 from qtl.episodes import run_episode
+from qtl.loop import MODEL_STREAM
 from qtl.models import DynamicsGP
+from qtl.models.warm_start import PreviousFit
 from qtl.seeding import torch_generator
 
 EVALUATION_SEED = 100  # real episodes use env seeds 100, 101, ...: not the run's own
@@ -53,11 +57,16 @@ def with_overrides(cfg: DictConfig, overrides: list[str]) -> DictConfig:
     return OmegaConf.merge(cfg, OmegaConf.from_dotlist(rest))
 
 
-def refitted(checkpoint: dict, overrides: list[str], seed: int) -> tuple[Parts, TransitionDataset, DynamicsGP]:
-    """The checkpoint's config with ``overrides`` built, its data, and the model refitted on them (seed ``seed``)."""
-    parts = build(with_overrides(typed_groups(OmegaConf.create(checkpoint["config"])), overrides))
+def refitted(checkpoint: dict, overrides: list[str]) -> tuple[Parts, TransitionDataset, DynamicsGP]:
+    """The checkpoint's config with ``overrides`` built, its data, and θ_p refitted on them as the run's next episode
+    would: warm-started from the checkpoint's fit (``model.warm_start``) with the run's own random stream."""
+    cfg = with_overrides(typed_groups(OmegaConf.create(checkpoint["config"])), overrides)
+    parts = build(cfg)
     data = TransitionDataset.from_state(checkpoint["dataset"], parts.task.angle_dims)
-    return parts, data, parts.fit_dynamics(data, torch_generator(seed, 0, 0))
+    state = checkpoint.get("previous_fit")  # absent in checkpoints made before model.warm_start
+    previous = None if state is None else PreviousFit.from_state_dict(state)
+    generator = torch_generator(cfg.seed, checkpoint["episode"] + 1, MODEL_STREAM)
+    return parts, data, parts.fit_dynamics(data, generator, previous=previous)
 
 
 def main() -> None:
@@ -67,12 +76,12 @@ def main() -> None:
     parser.add_argument("--fresh", action="store_true", help="start from a fresh ψ_0, not the run's policy")
     parser.add_argument("--episodes", type=int, default=3, help="real episodes of the found policy")
     parser.add_argument("--threads", type=int, default=1)
-    parser.add_argument("--seed", type=int, default=0, help="of the model fit and the search's restarts")
+    parser.add_argument("--seed", type=int, default=0, help="of the search's restarts")
     args, overrides = parser.parse_known_args()
     torch.set_num_threads(args.threads)
 
     checkpoint = load_checkpoint(args.checkpoint or latest_checkpoint(args.run_dir))
-    parts, data, model = refitted(checkpoint, overrides, args.seed)
+    parts, data, model = refitted(checkpoint, overrides)
     task, start = parts.task, parts.start
     policy = parts.initial_policy()
     if not args.fresh:

@@ -43,7 +43,7 @@ def main() -> None:
     parser.add_argument("--gradients", type=int, default=0, help="draws of ∂V/∂ψ per propagator (0: none)")
     parser.add_argument("--start-scale", type=float, default=1.0, help="value from N(μ_0, s² Σ_0)")
     parser.add_argument("--threads", type=int, default=1)
-    parser.add_argument("--seed", type=int, default=0, help="of the model fit")
+    parser.add_argument("--seed", type=int, default=0, help="of the particles' draws")
     args, overrides = parser.parse_known_args()
     if args.draws < 1 or args.particles < 2 or args.gradients == 1 or args.gradients < 0:
         raise SystemExit("--draws must be >= 1, --particles >= 2 and --gradients 0 or >= 2")
@@ -53,7 +53,7 @@ def main() -> None:
 
     data_checkpoint = load_checkpoint(args.data)
     policy_checkpoint = load_checkpoint(args.policy) if args.policy else data_checkpoint
-    parts, data, model = refitted(data_checkpoint, overrides, args.seed)
+    parts, data, model = refitted(data_checkpoint, overrides)
     task = parts.task
     start = Gaussian(parts.start.mean, parts.start.cov * args.start_scale**2)
     policy = parts.initial_policy()

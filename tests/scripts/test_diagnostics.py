@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import csv
 import json
 import os
 import subprocess
@@ -81,6 +82,11 @@ def test_value_probe_values_a_policy_by_every_propagator(runs) -> None:
         assert len(report[name]) == 2 and all(0.0 <= v <= 8.0 for v in report[name])  # 8 steps of reward <= 1
         assert report[name][0] != report[name][1]  # two draws
     assert 0.0 <= report["moment_matching"] <= 8.0
+    # The model fitted on checkpoint 1's data is the run's own model of episode 2 (warm-started as the run did),
+    # so moment matching values episode 2's policy as the run's search did.
+    with open(source_dir / "metrics.csv", newline="") as f:
+        logged = float(list(csv.DictReader(f))[2]["predicted_return"])
+    assert report["moment_matching"] == pytest.approx(logged, rel=1e-6)
     assert "configured" not in report  # the run's own propagator is moment matching
     particles = script("probe_policy_value.py", str(source_dir), "--data", str(checkpoints[1]), "--draws", "2",
                        "--particles", "20", "propagation=particles", "propagation.num_particles=20",
