@@ -63,7 +63,7 @@ def main() -> None:
     particle_run = cfg.propagation["_target_"].endswith("Particles")
     if not particle_run or not cfg.policy["_target_"].endswith("rbf_network_policy"):
         parser.error(f"{args.run_dir} is not a particle run with policy=rbf_network (e.g. recipe=mc_pilco)")
-    parts, data, model = refitted(checkpoint, [], 0)
+    parts, data, model = refitted(checkpoint, [])
     policy = parts.initial_policy()
     policy.load_state_dict(checkpoint["policy"])
     propagator = parts.make_propagator(model, policy, parts.reward, angle_dims=parts.task.angle_dims)
