@@ -4,10 +4,9 @@ A diagnostic for a run that stopped improving: the model is refitted on the run'
 or ``--checkpoint``) with the run's model settings as the run's next episode would fit it (warm-started from
 the checkpoint's fit, with the run's random stream; θ_p, not a transfer rule's θ), the search starts from the
 run's last policy (or from a fresh ψ_0 with ``--fresh``) and uses the run's config with the given Hydra
-overrides (e.g.
-``propagation=moment_matching``, ``optimizer=adam optimizer.steps=400``). Printed: the predicted return
-before and after, each search run's best value, evaluations, wall time, and the returns of ``--episodes``
-real episodes of the found policy (their success by the task's test).
+overrides (e.g. ``propagation=moment_matching``, ``optimizer=adam optimizer.steps=400``). Printed: the
+predicted return before and after, each search run's best value, evaluations, wall time, and the returns of
+``--episodes`` real episodes of the found policy (their success by the task's test).
 
     .venv/bin/python scripts/probe_policy_search.py RUN_DIR [--checkpoint PATH] [--fresh] [--episodes 3]
         [--threads 1] [--seed 0] [OVERRIDE ...]
