@@ -98,8 +98,7 @@ def run(cfg: DictConfig, output_dir: Path, *, resume: bool = False) -> RunResult
         rows, timings = list(checkpoint["metrics"]), list(checkpoint["timings"])
         health_rows = list(checkpoint.get("health", []))  # absent in checkpoints made before health.csv
         theta = None if checkpoint["theta"] is None else GPHyperparameters(**checkpoint["theta"])
-        if checkpoint.get("previous_fit") is not None:  # absent in checkpoints made before model.warm_start
-            previous = PreviousFit.from_state_dict(checkpoint["previous_fit"])
+        previous = PreviousFit.of_checkpoint(checkpoint)
         if "transfer" in checkpoint:  # checkpoints of runs made before transfer existed are PILCO runs
             plan.load_state_dict(checkpoint["transfer"])
         first = checkpoint["episode"] + 1

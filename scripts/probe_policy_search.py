@@ -62,10 +62,8 @@ def refitted(checkpoint: dict, overrides: list[str]) -> tuple[Parts, TransitionD
     cfg = with_overrides(typed_groups(OmegaConf.create(checkpoint["config"])), overrides)
     parts = build(cfg)
     data = TransitionDataset.from_state(checkpoint["dataset"], parts.task.angle_dims)
-    state = checkpoint.get("previous_fit")  # absent in checkpoints made before model.warm_start
-    previous = None if state is None else PreviousFit.from_state_dict(state)
     generator = torch_generator(cfg.seed, checkpoint["episode"] + 1, MODEL_STREAM)
-    return parts, data, parts.fit_dynamics(data, generator, previous=previous)
+    return parts, data, parts.fit_dynamics(data, generator, previous=PreviousFit.of_checkpoint(checkpoint))
 
 
 def main() -> None:

@@ -55,3 +55,9 @@ class PreviousFit:
         """Rebuild :meth:`state_dict`."""
         return cls(GPHyperparameters(**state["theta"]), state["objective"], int(state["num_points"]),
                    state["inducing"])
+
+    @classmethod
+    def of_checkpoint(cls, checkpoint: Mapping[str, object]) -> PreviousFit | None:
+        """The fit a run's checkpoint holds; None where it has none (made before ``model.warm_start``)."""
+        state = checkpoint.get("previous_fit")
+        return None if state is None else cls.from_state_dict(state)

@@ -175,6 +175,14 @@ def test_previous_fit_round_trips_through_a_checkpoint(tmp_path, previous):
     assert loaded.num_points == N - EPISODE and loaded.inducing is None
 
 
+def test_a_run_checkpoint_gives_its_previous_fit_or_none_when_it_predates_warm_starts(previous):
+    loaded = PreviousFit.of_checkpoint({"episode": 3, "previous_fit": previous.state_dict()})
+    assert loaded is not None and loaded.num_points == previous.num_points
+    torch.testing.assert_close(loaded.objective, previous.objective, rtol=0, atol=0)
+    assert PreviousFit.of_checkpoint({"episode": 3, "previous_fit": None}) is None
+    assert PreviousFit.of_checkpoint({"episode": 3}) is None  # a checkpoint made before model.warm_start
+
+
 def test_an_unfitted_model_has_no_previous_fit(data):
     with pytest.raises(ValueError, match="has not been fitted"):
         PreviousFit.of(DynamicsGP(*data))
