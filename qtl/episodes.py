@@ -5,11 +5,11 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import gymnasium
 import numpy as np
 import torch
-from matplotlib.figure import Figure
 
 from qtl.data import TransitionDataset, gp_training_pairs
 from qtl.errors import NonFiniteObjective
@@ -20,6 +20,9 @@ from qtl.policies import Policy
 from qtl.propagation import Propagator
 from qtl.recorder import trajectory_figure
 from qtl.task import Task
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 log = logging.getLogger(__name__)
 

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import csv
+import subprocess
+import sys
 from pathlib import Path
 
 import matplotlib.pyplot as plt
@@ -111,6 +113,33 @@ def test_trajectory_figure_labels_panels_with_state_names():
         trajectory_figure(mean, std, real, "episode 3", state_names=["x"])
     plt.close(fig)
     plt.close(named)
+
+
+def test_a_figure_reaches_tensorboard_as_an_image_at_its_episode(tmp_path):
+    mean = np.stack([np.linspace(0.0, 1.0, 6)] * 2, axis=1)
+    fig = trajectory_figure(mean, 0.1 * np.ones_like(mean), mean[:4], "episode 1")
+    recorder = RunRecorder(tmp_path, COLUMNS)
+    try:
+        recorder.record(episode_row(0, None), {"model_fit_s": 0.0, "policy_search_s": 0.0})
+        recorder.record(episode_row(1, THETA), {"model_fit_s": 0.5, "policy_search_s": 1.5}, fig)
+    finally:
+        recorder.close()
+    events = EventAccumulator(str(tmp_path))
+    events.Reload()
+    assert events.Tags()["images"] == ["rollout/predicted_vs_real"]
+    (image,) = events.Images("rollout/predicted_vs_real")
+    assert image.step == 1 and image.width > 100 and image.height > 100
+    assert not plt.fignum_exists(fig.number)  # closed once written
+
+
+def test_a_run_loads_matplotlib_only_to_draw_a_figure():
+    """The CLI's start (and its one-line user errors) skips matplotlib's ~0.7 s import; the first figure loads it."""
+    code = ("import sys, numpy as np, qtl.train, qtl.loop; print('matplotlib' in sys.modules); "
+            "from qtl.recorder import trajectory_figure; m = np.zeros((3, 1)); "
+            "trajectory_figure(m, m, m, 't'); print('matplotlib' in sys.modules)")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.split() == ["False", "True"]
 
 
 def test_env_return_and_an_estimated_start_reach_metrics_and_tensorboard_and_old_rows_still_write(tmp_path):

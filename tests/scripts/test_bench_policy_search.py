@@ -1,7 +1,8 @@
 """Smoke test of ``scripts/bench_policy_search.py``: its smallest configuration, writing nothing under docs/.
 
 Two tests, which pytest-xdist can run side by side: the propagators (``--no-compare``), and the backend x
-restarts comparison of issue 18 (``--compare-only``), both at n = 60.
+restarts comparison of issue 18 (``--compare-only``, a subset of its variants that takes every value of every switch),
+both at n = 60.
 """
 
 from __future__ import annotations
@@ -75,15 +76,18 @@ def test_smallest_configuration_measures_both_propagators_without_touching_docs(
     assert "### Exp sums torch vs native" not in done.stdout
 
 
-def test_smallest_comparison_times_every_variant_against_the_reference_path(tmp_path: Path) -> None:
-    """``--compare-only``: each COMPARE_VARIANTS row (backend x restarts x formulation) at n = 60, with its ratio."""
-    done, report = run_tiny(tmp_path, "--compare-only")
+# Each value of each switch at least once (backend torch/native, restarts sequential/batched, moments
+# reference/fused/native), with the baseline that always runs: 4 subprocesses instead of COMPARE_VARIANTS' 9.
+VARIANTS = ["torch/batched/reference", "torch/sequential/fused", "native/batched/native"]
+
+
+def test_smallest_comparison_times_the_chosen_variants_against_the_reference_path(tmp_path: Path) -> None:
+    """``--compare-only --variants``: the baseline and the chosen rows at n = 60, each with its ratio."""
+    done, report = run_tiny(tmp_path, "--compare-only", "--variants", *VARIANTS)
     assert report["results"] == [] and report["models"]["60"]["n"] == 60
     rows = {(r["backend"], r["batched"], r["moments"]): r for r in report["comparison"]}
-    assert sorted(rows) == sorted([
-        ("torch", False, "reference"), ("torch", True, "reference"), ("native", False, "reference"),
-        ("native", True, "reference"), ("torch", False, "fused"), ("native", False, "fused"),
-        ("native", True, "fused"), ("native", False, "native"), ("native", True, "native")])
+    assert sorted(rows) == sorted([("torch", False, "reference"), ("torch", True, "reference"),
+                                   ("torch", False, "fused"), ("native", True, "native")])
     for (backend, batched, moments), row in rows.items():
         if backend == "native" and "error" in row:  # the native kernel is optional: not built here
             assert "native" in row["error"]
@@ -107,3 +111,15 @@ def test_smallest_comparison_times_every_variant_against_the_reference_path(tmp_
         if "value_initial" in row:
             assert row["value_initial"] == pytest.approx(base["value_initial"], rel=1e-9)
     assert "### Exp sums torch vs native, restarts sequential vs batched" in done.stdout
+
+
+def test_an_unknown_variant_is_refused_in_one_line_before_any_measurement(tmp_path: Path) -> None:
+    output = tmp_path / "policy_search.json"
+    done = subprocess.run(
+        [sys.executable, str(SCRIPT), *TINY, "--compare-only", "--variants", "native/batched/nope", "--output",
+         str(output), "--cache-dir", str(tmp_path / "cache"), "--no-docs"],
+        capture_output=True, text=True, timeout=300, env={**os.environ, "OMP_NUM_THREADS": "1"},
+    )
+    assert done.returncode == 2
+    assert "unknown --variants native/batched/nope: choose from torch/sequential/reference" in done.stderr
+    assert not output.exists() and not (tmp_path / "cache").exists()
