@@ -4,11 +4,11 @@ Table 1's final performance is the mean return of a run's last 3 episodes: 3 sta
 every run of that seed, so one hard start in them moves a whole column (see ``scripts/relapse_starts.py``).
 This script loads each run's newest checkpoint (the policy that ran its last episode), runs it on the run's
 own task from K start states x_0 ~ N(μ_0, Σ_0) drawn once for all runs (``--eval-seed``; none of them is a
-training episode's), and reports per approach and target the success rate and mean return over those starts,
-mean ± std over seeds. No model is fitted and nothing in the run directories is written.
+training episode's), prints per approach and target the success rate and mean return over those starts
+(Tables F1-F2, mean ± std over seeds) and writes every run's numbers to ``<root>/final_policies.json``, where
+``scripts/report.py`` reads them back. No model is fitted and nothing in the run directories is written.
 
-    python scripts/evaluate_policies.py docs/experiments/cartpole --finished-only --starts 100 \\
-        --output docs/experiments/cartpole/final_policies.json
+    python scripts/evaluate_policies.py docs/experiments/cartpole --finished-only --starts 100
 """
 
 from __future__ import annotations
@@ -21,7 +21,6 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
 import torch
 from omegaconf import OmegaConf
 
@@ -32,11 +31,11 @@ import envs  # noqa: E402,F401  (registers the qtl/ environments)
 from qtl.build import build  # noqa: E402
 from qtl.checkpoint import latest_checkpoint, load_checkpoint  # noqa: E402
 from qtl.episodes import run_episode  # noqa: E402
-from qtl.report.discover import discover  # noqa: E402
-from qtl.report.tables import approach_grid, stat_text  # noqa: E402
+from qtl.report.discover import Experiment, discover  # noqa: E402
+from qtl.report.final_policies import FINAL_POLICIES_FILE, SOURCE, read_final_policies  # noqa: E402
+from qtl.report.final_policies import final_tables as final_policy_tables  # noqa: E402
 from qtl.seeding import ENV_STREAM, derive_seed  # noqa: E402
 
-SOURCE = "source"
 EVAL_SEED = 1_000_003  # the start states' seed: not a run seed of any sweep, so no start is a training episode's
 
 
@@ -76,9 +75,8 @@ def evaluate_run(approach: str, label: str, seed: int, run_dir: Path, episodes: 
                       float(np.mean(returns)), returns)
 
 
-def evaluate(root: Path, finished_only: bool, starts: int, eval_seed: int) -> list[Evaluation]:
+def evaluate(experiment: Experiment, starts: int, eval_seed: int) -> list[Evaluation]:
     """Every run's final policy: the sources' (approach and label ``source``) first, then the targets'."""
-    experiment = discover(root, finished_only=finished_only)
     runs = [(SOURCE, SOURCE, seed, experiment.source_dirs[seed], len(curve.returns))
             for seed, curve in experiment.sources.items()]
     runs += [(approach, label, seed, cell.run_dirs[seed], cell.lengths[seed])
@@ -93,27 +91,6 @@ def evaluate(root: Path, finished_only: bool, starts: int, eval_seed: int) -> li
     return found
 
 
-def summary_markdown(frame: pd.DataFrame, column: str, digits: int, percent: bool) -> str:
-    """Rows approaches, columns labels: ``mean ± std`` over seeds of ``column``, seeds per row."""
-    groups = frame.groupby(["approach", "label"], sort=False)[column]
-    stats = pd.DataFrame({"mean": groups.mean(), "std": groups.std(ddof=1), "n": groups.size()})
-    scale = 100.0 if percent else 1.0
-    text = pd.Series([stat_text(m * scale, s * scale, digits) + (" %" if percent else "")
-                      for m, s in zip(stats["mean"], stats["std"], strict=True)], index=stats.index)
-    return approach_grid(text, stats["n"], list(dict.fromkeys(frame["approach"])), list(dict.fromkeys(frame["label"])))
-
-
-def report(evaluations: list[Evaluation], starts: int) -> str:
-    """The two tables: success rate and mean return of the final policies over the start states."""
-    if not evaluations:
-        return "No finished run to evaluate.\n"
-    frame = pd.DataFrame([asdict(e) for e in evaluations])
-    return (f"Final policies from the same {starts} start states: success rate, mean ± std over seeds.\n\n"
-            + summary_markdown(frame, "success_rate", 0, percent=True)
-            + f"\n\nMean return over the {starts} start states, mean ± std over seeds.\n\n"
-            + summary_markdown(frame, "mean_return", 2, percent=False) + "\n")
-
-
 def main(argv: list[str] | None = None) -> None:
     """Parse the arguments, evaluate the final policies, print the tables (and write JSON)."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -121,20 +98,24 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--finished-only", action="store_true", help="leave out runs short of their episodes")
     parser.add_argument("--starts", type=int, default=100, help="start states per policy (default 100)")
     parser.add_argument("--eval-seed", type=int, default=EVAL_SEED, help="seed of the start states")
-    parser.add_argument("--output", type=Path, help="also write every run's numbers as JSON here")
+    parser.add_argument("--output", type=Path,
+                        help=f"where every run's numbers go as JSON (default: <root>/{FINAL_POLICIES_FILE}, "
+                             "which scripts/report.py reads)")
     args = parser.parse_args(argv)
     if not args.root.is_dir():
         parser.error(f"{args.root} is not a directory: give an experiment directory")
     if args.starts < 1:
         parser.error(f"--starts {args.starts}: give at least one start state")
     torch.set_num_threads(1)
-    evaluations = evaluate(args.root, args.finished_only, args.starts, args.eval_seed)
-    print(report(evaluations, args.starts), end="")
-    if args.output is not None:
-        args.output.parent.mkdir(parents=True, exist_ok=True)
-        numbers = {"starts": args.starts, "eval_seed": args.eval_seed,
-                   "runs": [asdict(e) for e in evaluations]}
-        args.output.write_text(json.dumps(numbers, indent=2, allow_nan=False) + "\n")
+    experiment = discover(args.root, finished_only=args.finished_only)
+    evaluations = evaluate(experiment, args.starts, args.eval_seed)
+    output = args.output or experiment.root / FINAL_POLICIES_FILE
+    output.parent.mkdir(parents=True, exist_ok=True)
+    numbers = {"starts": args.starts, "eval_seed": args.eval_seed, "runs": [asdict(e) for e in evaluations]}
+    output.write_text(json.dumps(numbers, indent=2, allow_nan=False) + "\n")
+    print(f"Final policies from the same {args.starts} start states, written to {output}.\n")
+    found = read_final_policies(experiment, output)
+    print("\n\n".join(final_policy_tables(found, experiment.approaches, experiment.labels)))
 
 
 if __name__ == "__main__":

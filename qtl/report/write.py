@@ -20,6 +20,7 @@ from qtl.report.approaches import approach_name
 from qtl.report.autopilot import flies_helicopter
 from qtl.report.discover import OVERRIDES_FILE, SEED_PREFIX, Experiment, discover, run_overrides
 from qtl.report.figures import FIGURE_STEM, plot_learning_curves
+from qtl.report.final_policies import final_policies_json, final_policies_markdown
 from qtl.report.paper import beside_paper_markdown, paper_json
 from qtl.report.record import EXPERIMENT_FILE
 from qtl.report.reliability import reliability_json, reliability_markdown
@@ -85,6 +86,7 @@ def tables_json(experiment: Experiment) -> dict[str, object]:
         "reference": None if reference is None else reference.to_dict(),
         "paper": paper_json(experiment),
         "successes": success_json(experiment),
+        "final_policies": final_policies_json(experiment),
         "reliability": reliability_json(experiment),
     }
 
@@ -137,13 +139,14 @@ def _commands_markdown(experiment: Experiment) -> str:
 
 
 def report_markdown(experiment: Experiment, figures: Sequence[Path]) -> str:
-    """``report.md``: what was found, Tables 1-6 (and beside the paper's), S1-S3, the learning curves, reliability
-    counts and commands."""
+    """``report.md``: what was found, Tables 1-6 (and beside the paper's), S1-S3, F1-F2 where the final policies
+    were evaluated, the learning curves, reliability counts and commands."""
     title = experiment.name or experiment.root.name
     png, *others = figures
     caption = "Learning curves: mean total reward per episode over seeds, error bars ±1 standard deviation."
     reference = experiment.reference
     beside = beside_paper_markdown(experiment)
+    final = final_policies_markdown(experiment, experiment.root)
     if reference is not None:
         caption += f" Dashed: the {reference.name}'s total reward ({reference.total:.{REWARD_DIGITS}f})."
     sections = [
@@ -153,6 +156,7 @@ def report_markdown(experiment: Experiment, figures: Sequence[Path]) -> str:
         *([] if beside is None else ["## Beside the paper\n\n" + beside]),
         "## Successes (not in the paper)\n\nFrom each episode's success test, over the same episodes as "
         "Tables 1-3.\n\n" + "\n\n".join(success_markdown(experiment)),
+        *([] if final is None else ["## Final policies (not in the paper)\n\n" + final]),
         f"## Learning curves\n\n![learning curves]({png.name})\n\n{caption} "
         + " ".join(f"[{p.suffix[1:].upper()}]({p.name})" for p in others),
         "## Reliability\n\nOver every run " + ("in the tables" if experiment.left_out else "found")

@@ -12,6 +12,8 @@ from pathlib import Path
 import pytest
 
 from qtl.loop import run
+from qtl.report import write_report
+from qtl.report.final_policies import FINAL_POLICIES_FILE
 from tests.helpers import tiny_config
 
 pytestmark = pytest.mark.e2e  # runs the real script in a subprocess
@@ -52,10 +54,15 @@ def test_replays_the_last_episode_from_its_own_start(experiment: Path, tmp_path:
 
 
 def test_the_default_starts_are_reproducible_and_not_the_runs_own(experiment: Path, tmp_path: Path) -> None:
-    first, second = (_call(str(experiment), "--starts", "2", "--output", str(tmp_path / f"{i}.json")) for i in (1, 2))
+    first = _call(str(experiment), "--starts", "2")  # by default into the experiment, where the report reads it
+    second = _call(str(experiment), "--starts", "2", "--output", str(tmp_path / "2.json"))
     assert first.returncode == 0 and second.returncode == 0, first.stderr[-3000:]
-    runs = [json.loads((tmp_path / f"{i}.json").read_text())["runs"][0]["returns"] for i in (1, 2)]
+    runs = [json.loads(path.read_text())["runs"][0]["returns"]
+            for path in (experiment / FINAL_POLICIES_FILE, tmp_path / "2.json")]
     assert runs[0] == runs[1]
+    report = write_report(experiment, tmp_path / "report").read_text()
+    assert "**Table F1.** Final policies: the share of the 2 start states" in report
+    assert "not evaluated" not in report
     own = _call(str(experiment), "--starts", "2", "--eval-seed", str(SEED), "--output", str(tmp_path / "own.json"))
     assert own.returncode == 0, own.stderr[-3000:]
     assert json.loads((tmp_path / "own.json").read_text())["runs"][0]["returns"] != runs[0]  # other start states
