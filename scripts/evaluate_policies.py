@@ -32,8 +32,7 @@ from qtl.build import build  # noqa: E402
 from qtl.checkpoint import latest_checkpoint, load_checkpoint  # noqa: E402
 from qtl.episodes import run_episode  # noqa: E402
 from qtl.report.discover import Experiment, discover  # noqa: E402
-from qtl.report.final_policies import FINAL_POLICIES_FILE, SOURCE, read_final_policies  # noqa: E402
-from qtl.report.final_policies import final_tables as final_policy_tables  # noqa: E402
+from qtl.report.final_policies import FINAL_POLICIES_FILE, SOURCE, final_policies_markdown  # noqa: E402
 from qtl.seeding import ENV_STREAM, derive_seed  # noqa: E402
 
 EVAL_SEED = 1_000_003  # the start states' seed: not a run seed of any sweep, so no start is a training episode's
@@ -113,9 +112,7 @@ def main(argv: list[str] | None = None) -> None:
     output.parent.mkdir(parents=True, exist_ok=True)
     numbers = {"starts": args.starts, "eval_seed": args.eval_seed, "runs": [asdict(e) for e in evaluations]}
     output.write_text(json.dumps(numbers, indent=2, allow_nan=False) + "\n")
-    print(f"Final policies from the same {args.starts} start states, written to {output}.\n")
-    found = read_final_policies(experiment, output)
-    print("\n\n".join(final_policy_tables(found, experiment.approaches, experiment.labels)))
+    print(f"Written to {output}.\n\n" + final_policies_markdown(experiment, args.root, output))
 
 
 if __name__ == "__main__":

@@ -97,10 +97,10 @@ def final_tables(found: FinalPolicies, approaches: list[str], labels: list[str])
     return tables
 
 
-def final_policies_markdown(experiment: Experiment, root_text: str | Path) -> str | None:
+def final_policies_markdown(experiment: Experiment, root_text: str | Path, path: Path | None = None) -> str | None:
     """The report's section body: how the start states were drawn, Tables F1-F2, the sources and the runs left
-    out; None without ``final_policies.json``."""
-    found = read_final_policies(experiment)
+    out, from ``path`` (default ``<root>/final_policies.json``); None without that file."""
+    found = read_final_policies(experiment, path)
     if found is None:
         return None
     parts = [f"Each run's last policy, run on its own task from the same {found.starts} start states (drawn with "

@@ -50,7 +50,9 @@ def test_replays_the_last_episode_from_its_own_start(experiment: Path, tmp_path:
     assert evaluation["returns"][1] == pytest.approx(float(rows[1]["return"]), rel=1e-12)
     assert len(set(evaluation["returns"])) == 3  # three different start states
     assert 0.0 <= evaluation["success_rate"] <= 1.0
-    assert "PILCO (γ = 0)" in done.stdout and "Final policies from the same 3 start states" in done.stdout
+    assert "PILCO (γ = 0)" in done.stdout
+    assert "**Table F1.** Final policies: the share of the 3 start states" in done.stdout
+    assert f"Written to {output}." in done.stdout
 
 
 def test_the_default_starts_are_reproducible_and_not_the_runs_own(experiment: Path, tmp_path: Path) -> None:
