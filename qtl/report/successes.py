@@ -12,7 +12,7 @@ from collections.abc import Callable, Sequence
 import pandas as pd
 
 from qtl.metrics import FINAL_EPISODES, final_successes, first_success, relapses
-from qtl.report.discover import Experiment
+from qtl.report.discover import SEED_PREFIX, Experiment
 from qtl.report.stats import CELL_KEYS, VALUE, per_seed, std_or_none
 from qtl.report.tables import EPISODE_DIGITS, MISSING, approach_grid, stat_text
 
@@ -67,8 +67,16 @@ def _cell_text(metric: str, row: pd.Series) -> str:
     return f"{text} ({int(row['n'])}/{int(row['seeds'])})" if metric == "first_success" else text
 
 
+def unconverged_runs(experiment: Experiment) -> list[tuple[str, int | None]]:
+    """The runs with no success among Table 1's last episodes (the paper's NC), as ``<approach>/<label>/seed_<s>``,
+    each with its first success (None: it never succeeded)."""
+    return [(f"{approach}/{label}/{SEED_PREFIX}{seed}", first_success(cell.curves[seed].successes))
+            for approach, by_label in experiment.cells.items() for label, cell in by_label.items()
+            for seed in cell.seeds if final_successes(cell.curves[seed].successes) == 0]
+
+
 def success_markdown(experiment: Experiment) -> list[str]:
-    """Tables S1-S3: rows approaches, columns labels, seeds per row."""
+    """Tables S1-S3 (rows approaches, columns labels, seeds per row) and the runs that did not converge."""
     values = success_values(experiment)
     tables = []
     for metric in SUCCESS_METRICS:
@@ -76,14 +84,19 @@ def success_markdown(experiment: Experiment) -> list[str]:
         text = pd.Series([_cell_text(metric, row) for _, row in stats.iterrows()], index=stats.index)
         grid = approach_grid(text, stats["seeds"], experiment.approaches, experiment.labels)
         tables.append(SUCCESS_TITLES[metric] + "\n\n" + grid)
+    unconverged = unconverged_runs(experiment)
+    runs = ", ".join(f"{run} ({'never succeeded' if first is None else f'first success at episode {first}'})"
+                     for run, first in unconverged)
+    tables.append(f"Runs with no success among the last {FINAL_EPISODES} episodes (NC): "
+                  + (f"{len(unconverged)}: {runs}." if unconverged else "none."))
     return tables
 
 
-def success_json(experiment: Experiment) -> dict[str, dict[str, dict[str, dict[str, object]]]]:
+def success_json(experiment: Experiment) -> dict[str, dict[str, object]]:
     """Tables S1-S3 for ``tables.json``: metric -> approach -> label -> mean, std, n, seeds and per-seed values
-    (null where a seed has none: no success)."""
+    (null where a seed has none: no success); and ``unconverged``: each NC run -> its first success (null: none)."""
     values = success_values(experiment)
-    out: dict[str, dict[str, dict[str, dict[str, object]]]] = {}
+    out: dict[str, dict[str, object]] = {}
     for metric in SUCCESS_METRICS:
         of_metric = values[values["metric"] == metric]
         by_cell = of_metric.groupby(CELL_KEYS, sort=False)
@@ -95,4 +108,5 @@ def success_json(experiment: Experiment) -> dict[str, dict[str, dict[str, dict[s
                 "mean": None if row["n"] == 0 else float(row["mean"]), "std": std_or_none(row["std"]),
                 "n": int(row["n"]), "seeds": int(row["seeds"]), "per_seed": seeds,
             }
+    out["unconverged"] = {run: first for run, first in unconverged_runs(experiment)}
     return out

@@ -58,3 +58,21 @@ def test_report_holds_the_tables_and_their_numbers(cartpole):
     assert s1["qtl_bayesian"]["m2.0"]["per_seed"] == {"0": None, "1": 2.0}
     assert tables["successes"]["relapses"]["pilco"]["m1.5"]["mean"] == pytest.approx(0.5)
     assert tables["successes"]["final_successes"]["qtl_bayesian"]["m2.0"]["std"] == pytest.approx(math.sqrt(4.5))
+
+
+def test_the_unconverged_runs_are_named_with_their_first_success(experiment, cartpole):
+    # NC: no success among the last 3 of the cell's episodes. PILCO 2.0 kg: both seeds (seed 1's late successes
+    # lie past the cut); QTL 2.0 kg: seed 0 only (seed 1 succeeds from episode 2 on).
+    text = success_markdown(experiment)[-1]
+    assert text == ("Runs with no success among the last 3 episodes (NC): 3: pilco/m2.0/seed_0 (never succeeded), "
+                    "pilco/m2.0/seed_1 (never succeeded), qtl_bayesian/m2.0/seed_0 (never succeeded).")
+    _, _, tables = cartpole
+    assert tables["successes"]["unconverged"] == {"pilco/m2.0/seed_0": None, "pilco/m2.0/seed_1": None,
+                                                  "qtl_bayesian/m2.0/seed_0": None}
+
+
+def test_a_run_that_succeeded_and_lost_it_is_unconverged_with_its_first_success(tmp_path):
+    runs = {"pilco": {"m1.0": {0: ([0, 30, 30, 10, 10, 10], [math.nan] * 6),  # succeeded at 1, lost it: NC
+                               1: ([0, 10, 10, 10, 10, 30], [math.nan] * 6)}}}  # one success at the end: converged
+    text = success_markdown(discover(make_experiment(tmp_path / "cartpole", runs)))[-1]
+    assert text.endswith("(NC): 1: pilco/m1.0/seed_0 (first success at episode 1).")
