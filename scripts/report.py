@@ -34,7 +34,10 @@ def main() -> None:
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
     if args.record_reference and record_reference(args.root) is None:
         logging.getLogger(__name__).warning("%s does not fly the helicopter: no reference line recorded", args.root)
-    print(write_report(args.root, args.out, finished_only=args.finished_only))
+    try:
+        print(write_report(args.root, args.out, finished_only=args.finished_only))
+    except ValueError as err:  # what the experiment directory lacks or holds wrong, in one line
+        parser.exit(1, f"{parser.prog}: {err}\n")
 
 
 if __name__ == "__main__":

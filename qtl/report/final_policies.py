@@ -47,8 +47,13 @@ def read_final_policies(experiment: Experiment, path: Path | None = None) -> Fin
     path = experiment.root / FINAL_POLICIES_FILE if path is None else path
     if not path.is_file():
         return None
-    numbers = json.loads(path.read_text())
-    by_run = {(r["approach"], r["label"], int(r["seed"])): r for r in numbers["runs"]}
+    try:
+        numbers = json.loads(path.read_text())
+        starts, eval_seed = int(numbers["starts"]), int(numbers["eval_seed"])
+        by_run = {(r["approach"], r["label"], int(r["seed"])): r for r in numbers["runs"]}
+    except (ValueError, KeyError, TypeError) as err:
+        raise ValueError(f"{path} is not what scripts/evaluate_policies.py writes ({type(err).__name__}: {err}); "
+                         f"move it away or rerun `{EVALUATE_COMMAND.format(root=experiment.root)}`") from err
     rows, source_rows, stale = [], [], []
 
     def evaluation(approach: str, label: str, seed: int, episodes: int) -> dict | None:
@@ -66,7 +71,7 @@ def read_final_policies(experiment: Experiment, path: Path | None = None) -> Fin
             for seed in cell.seeds:
                 if (found := evaluation(approach, label, seed, cell.lengths[seed])) is not None:
                     rows += [(metric, approach, label, seed, float(found[metric])) for metric in FINAL_METRICS]
-    return FinalPolicies(int(numbers["starts"]), int(numbers["eval_seed"]),
+    return FinalPolicies(starts, eval_seed,
                          pd.DataFrame(rows, columns=["metric", *CELL_KEYS, "seed", VALUE]),
                          pd.DataFrame(source_rows, columns=["metric", "seed", VALUE]), stale)
 

@@ -20,7 +20,7 @@ from qtl.report.approaches import approach_name
 from qtl.report.autopilot import flies_helicopter
 from qtl.report.discover import OVERRIDES_FILE, SEED_PREFIX, Experiment, discover, run_overrides
 from qtl.report.figures import FIGURE_STEM, plot_learning_curves
-from qtl.report.final_policies import final_policies_json, final_policies_markdown
+from qtl.report.final_policies import final_policies_json, final_policies_markdown, read_final_policies
 from qtl.report.paper import beside_paper_markdown, paper_json
 from qtl.report.record import EXPERIMENT_FILE
 from qtl.report.reliability import reliability_json, reliability_markdown
@@ -172,9 +172,11 @@ def write_report(root: str | Path, out_dir: str | Path | None = None, *, finishe
 
     ``out_dir`` defaults to ``<root>/report``. The autopilot line is read from ``experiment.yaml``, never computed
     here. ``finished_only``: leave out (and name) the runs with fewer episodes than configured. Raises ValueError
-    when ``root`` has no target runs (none finished, with ``finished_only``).
+    when ``root`` has no target runs (none finished, with ``finished_only``) or a ``final_policies.json`` that
+    ``scripts/evaluate_policies.py`` did not write, before anything is written.
     """
     experiment = discover(root, finished_only=finished_only)
+    read_final_policies(experiment)  # a final_policies.json it cannot read fails here, before anything is written
     out = experiment.root / REPORT_DIR if out_dir is None else Path(out_dir).expanduser().resolve()
     out.mkdir(parents=True, exist_ok=True)
     if flies_helicopter(experiment) and experiment.reference is None:

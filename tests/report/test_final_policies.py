@@ -83,3 +83,14 @@ def test_without_evaluations_the_report_has_no_such_section(tmp_path: Path) -> N
     report = write_report(root).read_text()
     assert "Final policies" not in report
     assert json.loads((root / "report" / "tables.json").read_text())["final_policies"] is None
+
+
+@pytest.mark.parametrize("text", ["{not json", '{"starts": 4, "eval_seed": 1}',
+                                  '{"starts": 4, "eval_seed": 1, "runs": [{}]}'])
+def test_a_file_that_is_not_the_scripts_output_is_refused_in_one_line(tmp_path: Path, text: str) -> None:
+    root = make_experiment(tmp_path / "cartpole", CARTPOLE)
+    (root / FINAL_POLICIES_FILE).write_text(text)
+    with pytest.raises(ValueError, match=r"final_policies.json is not what scripts/evaluate_policies.py writes .*"
+                                         r"rerun `python scripts/evaluate_policies.py .* --finished-only`") as err:
+        write_report(root)
+    assert "\n" not in str(err.value)

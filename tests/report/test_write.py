@@ -94,3 +94,13 @@ def test_cli_prints_the_report_path(tmp_path):
     assert done.returncode == 0, done.stderr
     assert done.stdout.strip() == str(tmp_path / "out" / "report.md")
     assert ("PILCO (γ = 0)", "33.00 ± 4.24", "2") in table_rows((tmp_path / "out" / "report.md").read_text())
+
+
+def test_cli_refuses_an_unreadable_final_policies_file_in_one_line_writing_nothing(tmp_path):
+    root = make_experiment(tmp_path / "exp", {"pilco": {"m1.5": CARTPOLE["pilco"]["m1.5"]}}, sources=0)
+    (root / "final_policies.json").write_text("{}")
+    done = subprocess.run([sys.executable, str(REPO / "scripts" / "report.py"), str(root)], capture_output=True,
+                          text=True, timeout=120)
+    assert done.returncode == 1 and done.stdout == ""
+    assert done.stderr.count("\n") == 1 and "is not what scripts/evaluate_policies.py writes" in done.stderr
+    assert not (root / "report").exists()
