@@ -2,11 +2,12 @@
 
 A diagnostic for a run that stopped improving: the model is refitted on the run's data (its last checkpoint
 or ``--checkpoint``) with the run's model settings as the run's next episode would fit it (warm-started from
-the checkpoint's fit, with the run's random stream; θ_p, not a transfer rule's θ), the search starts from the
-run's last policy (or from a fresh ψ_0 with ``--fresh``) and uses the run's config with the given Hydra
-overrides (e.g. ``propagation=moment_matching``, ``optimizer=adam optimizer.steps=400``). Printed: the
-predicted return before and after, each search run's best value, evaluations, wall time, and the returns of
-``--episodes`` real episodes of the found policy (their success by the task's test).
+the checkpoint's fit, with the run's random stream, cold restarts from the transfer plan's start, and θ set by
+the run's updating rule from its checkpointed state: the model the run's next search would use), the search
+starts from the run's last policy (or from a fresh ψ_0 with ``--fresh``) and uses the run's config with the
+given Hydra overrides (e.g. ``propagation=moment_matching``, ``optimizer=adam optimizer.steps=400``). Printed:
+the predicted return before and after, each search run's best value, evaluations, wall time, and the returns
+of ``--episodes`` real episodes of the found policy (their success by the task's test).
 
     .venv/bin/python scripts/probe_policy_search.py RUN_DIR [--checkpoint PATH] [--fresh] [--episodes 3]
         [--threads 1] [--seed 0] [OVERRIDE ...]
@@ -23,7 +24,7 @@ from pathlib import Path
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from qtl.build import Parts, build
+from qtl.build import Parts, build, transfer_plan
 from qtl.checkpoint import latest_checkpoint, load_checkpoint
 from qtl.config import GROUP_SCHEMAS, typed_groups
 from qtl.data import TransitionDataset
@@ -57,13 +58,23 @@ def with_overrides(cfg: DictConfig, overrides: list[str]) -> DictConfig:
 
 
 def refitted(checkpoint: dict, overrides: list[str]) -> tuple[Parts, TransitionDataset, DynamicsGP]:
-    """The checkpoint's config with ``overrides`` built, its data, and θ_p refitted on them as the run's next episode
-    would: warm-started from the checkpoint's fit (``model.warm_start``) with the run's own random stream."""
+    """The checkpoint's config with ``overrides`` built, its data, and the model the run's next episode would search
+    on (Algorithm 1, lines 12-13): θ_p fitted warm from the checkpoint's fit (``model.warm_start``) with the run's
+    own random stream and the transfer plan's cold start, then θ = the updating rule's θ_i from the checkpointed
+    rule state (Eqs. 6-12; θ_p itself for PILCO). Loads the run's source run, where it has one."""
     cfg = with_overrides(typed_groups(OmegaConf.create(checkpoint["config"])), overrides)
     parts = build(cfg)
     data = TransitionDataset.from_state(checkpoint["dataset"], parts.task.angle_dims)
+    plan = transfer_plan(cfg, parts)
+    if "transfer" in checkpoint:  # checkpoints of runs made before transfer existed are PILCO runs
+        plan.load_state_dict(checkpoint["transfer"])
     generator = torch_generator(cfg.seed, checkpoint["episode"] + 1, MODEL_STREAM)
-    return parts, data, parts.fit_dynamics(data, generator, previous=PreviousFit.of_checkpoint(checkpoint))
+    model = parts.fit_dynamics(data, generator, start=plan.fit_start(), previous=PreviousFit.of_checkpoint(checkpoint))
+    theta_p = model.hyperparameters
+    theta = plan.update(theta_p, len(data), plan.compliance(model))
+    if theta is not theta_p:
+        model.hyperparameters = theta
+    return parts, data, model
 
 
 def main() -> None:

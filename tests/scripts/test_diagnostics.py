@@ -94,3 +94,20 @@ def test_value_probe_values_a_policy_by_every_propagator(runs) -> None:
     report = json.loads(particles.stdout.strip().splitlines()[-1])
     assert len(report["configured"]) == 2 and len(report["configured_search_reward"]) == 2
     assert report["configured_search_reward"][0] > report["configured"][0]  # the 4× wider reward pays more
+
+
+@pytest.mark.parametrize("approach", ["qtl_bayesian", "hyperparameters_transfer"])
+def test_value_probe_searches_on_the_transfer_runs_own_model(runs, tmp_path, approach) -> None:
+    """For a transfer run the probe's model is θ_i of the run's rule (Bayesian fusion's state from the checkpoint;
+    the free rule's cold restarts from θ_s), not θ_p: moment matching repeats the run's logged prediction."""
+    source_dir, _ = runs
+    target = tmp_path / approach
+    run(tiny_config("episodes=2", "seed=5", "task.env.pole_mass=2.0", f"approach={approach}",
+                    f"transfer.source={source_dir}"), target)
+    checkpoints = sorted((target / "checkpoints").glob("episode_*.pt"))
+    done = script("probe_policy_value.py", str(target), "--data", str(checkpoints[1]), "--policy",
+                  str(checkpoints[2]), "--draws", "1", "--particles", "10", "--features", "16")
+    report = json.loads(done.stdout.strip().splitlines()[-1])
+    with open(target / "metrics.csv", newline="") as f:
+        logged = float(list(csv.DictReader(f))[2]["predicted_return"])
+    assert report["moment_matching"] == pytest.approx(logged, rel=1e-6)
