@@ -3,7 +3,8 @@
 A full-scale sweep outlasts a working session, and its runs are continued by repeating the command
 (``resume=auto``). Given the runs a sweep plans (``qtl.launch.planned_runs`` expands a preset's
 Hydra sweep into them), ``sweep_progress`` reads what each has checkpointed and the time its
-episodes took (``timings.csv``), and ``progress_markdown`` puts it in a table.
+episodes took (``timings.csv``), ``remaining_hours`` prices the episodes still to make at the finished runs'
+pace, and ``progress_markdown`` puts it in a table.
 """
 
 from __future__ import annotations
@@ -31,11 +32,16 @@ class PlannedRun:
 
 @dataclass(frozen=True)
 class RunProgress:
-    """A planned run as found on disk: episodes checkpointed and the seconds its recorded episodes took."""
+    """A planned run as found on disk: episodes checkpointed and the seconds each recorded episode took."""
 
     run: PlannedRun
     done: int
-    seconds: float
+    episode_seconds: tuple[float, ...]  # of the first ``done`` episodes, as far as ``timings.csv`` records them
+
+    @property
+    def seconds(self) -> float:
+        """Seconds its recorded episodes took."""
+        return sum(self.episode_seconds)
 
     @property
     def finished(self) -> bool:
@@ -43,14 +49,14 @@ class RunProgress:
         return self.done >= self.run.episodes
 
 
-def _recorded_seconds(run_dir: Path, episodes: int) -> float:
-    """Seconds the run's first ``episodes`` recorded episodes took (``timings.csv``'s ``episode_s``)."""
+def _recorded_seconds(run_dir: Path, episodes: int) -> tuple[float, ...]:
+    """Seconds each of the run's first ``episodes`` recorded episodes took (``timings.csv``'s ``episode_s``)."""
     path = run_dir / TIMINGS_FILE
     if not path.is_file():
-        return 0.0
+        return ()
     with open(path, newline="") as f:
         rows = [row for row in csv.DictReader(f) if row.get("episode_s")]
-    return sum(float(row["episode_s"]) for row in rows[:episodes])
+    return tuple(float(row["episode_s"]) for row in rows[:episodes])
 
 
 def sweep_progress(runs: Sequence[PlannedRun]) -> list[RunProgress]:
@@ -58,8 +64,22 @@ def sweep_progress(runs: Sequence[PlannedRun]) -> list[RunProgress]:
     found = []
     for run in runs:
         done = min(episodes_done(run.run_dir), run.episodes)  # 0 where the directory does not exist yet
-        found.append(RunProgress(run=run, done=done, seconds=_recorded_seconds(run.run_dir, done)))
+        found.append(RunProgress(run=run, done=done, episode_seconds=_recorded_seconds(run.run_dir, done)))
     return found
+
+
+def remaining_hours(progress: Sequence[RunProgress]) -> float | None:
+    """Hours of one core the episodes still to make need, each at the finished runs' mean time for that episode
+    (later episodes fit and search on more data); None before a run has finished with all its times recorded."""
+    complete = [p.episode_seconds for p in progress if p.finished and len(p.episode_seconds) == p.done]
+    if not complete:
+        return None
+    longest = max(map(len, complete))
+    per_episode = [sum(run[e] for run in complete if e < len(run)) / sum(e < len(run) for run in complete)
+                   for e in range(longest)]
+    # An episode past the longest finished run's is taken at that run's last episode's time.
+    return sum(per_episode[min(e, longest - 1)] for p in progress if not p.finished
+               for e in range(p.done, p.run.episodes)) / 3600
 
 
 def progress_markdown(stages: dict[str, list[RunProgress]], root: Path | None = None) -> str:
@@ -71,13 +91,16 @@ def progress_markdown(stages: dict[str, list[RunProgress]], root: Path | None = 
         begun = sum(p.done > 0 for p in progress)
         finished = sum(p.finished for p in progress)
         hours = sum(p.seconds for p in progress) / 3600
+        left = remaining_hours(progress)
+        pace = ("" if finished == len(progress) or left is None else
+                f"; ~{left:.1f} h of one core to go at the finished runs' time per episode")
         rows = [[str(p.run.run_dir.relative_to(root) if root and p.run.run_dir.is_relative_to(root)
                      else p.run.run_dir), f"{p.done} / {p.run.episodes}",
                  "done" if p.finished else ("begun" if p.done else "not begun"), f"{p.seconds / 3600:.2f}"]
                 for p in progress]
         blocks.append(
             f"**{stage}**: {finished} of {len(progress)} runs finished, {begun - finished} begun, "
-            f"{len(progress) - begun} not begun; {made} of {planned} episodes made ({hours:.1f} h recorded)\n\n"
+            f"{len(progress) - begun} not begun; {made} of {planned} episodes made ({hours:.1f} h recorded{pace})\n\n"
             + markdown(pd.DataFrame(rows, columns=["run", "episodes", "state", "hours"]), text_columns=3)
         )
     return "\n\n".join(blocks) + "\n"
