@@ -106,7 +106,10 @@ def main(argv: list[str] | None = None) -> None:
     if args.starts < 1:
         parser.error(f"--starts {args.starts}: give at least one start state")
     torch.set_num_threads(1)
-    experiment = discover(args.root, finished_only=args.finished_only)
+    try:
+        experiment = discover(args.root, finished_only=args.finished_only)
+    except ValueError as err:  # no target run (finished, with --finished-only) under root
+        parser.error(str(err))
     evaluations = evaluate(experiment, args.starts, args.eval_seed)
     output = args.output or experiment.root / FINAL_POLICIES_FILE
     output.parent.mkdir(parents=True, exist_ok=True)

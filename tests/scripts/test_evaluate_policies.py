@@ -75,3 +75,6 @@ def test_bad_arguments_are_refused_in_one_line(tmp_path: Path) -> None:
         "is not a directory: give an experiment directory")
     assert _call(str(tmp_path), "--starts", "0").stderr.strip().splitlines()[-1].endswith(
         "give at least one start state")
+    empty = _call(str(tmp_path))  # a directory without runs: named in one line, nothing written
+    assert empty.returncode == 2 and "Traceback" not in empty.stderr and str(tmp_path) in empty.stderr
+    assert not (tmp_path / "final_policies.json").exists()
