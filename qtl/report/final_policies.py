@@ -50,27 +50,29 @@ def read_final_policies(experiment: Experiment, path: Path | None = None) -> Fin
     try:
         numbers = json.loads(path.read_text())
         starts, eval_seed = int(numbers["starts"]), int(numbers["eval_seed"])
-        by_run = {(r["approach"], r["label"], int(r["seed"])): r for r in numbers["runs"]}
+        # run -> (the episode whose policy was evaluated, {metric: value}), every field read and cast here
+        by_run = {(r["approach"], r["label"], int(r["seed"])):
+                  (int(r["episode"]), {metric: float(r[metric]) for metric in FINAL_METRICS}) for r in numbers["runs"]}
     except (ValueError, KeyError, TypeError) as err:
         raise ValueError(f"{path} is not what scripts/evaluate_policies.py writes ({type(err).__name__}: {err}); "
                          f"move it away or rerun `{EVALUATE_COMMAND.format(root=experiment.root)}`") from err
     rows, source_rows, stale = [], [], []
 
-    def evaluation(approach: str, label: str, seed: int, episodes: int) -> dict | None:
-        found = by_run.get((approach, label, seed))
-        if found is None or found["episode"] != episodes - 1:
+    def evaluation(approach: str, label: str, seed: int, episodes: int) -> dict[str, float] | None:
+        episode, values = by_run.get((approach, label, seed), (None, {}))
+        if episode != episodes - 1:
             stale.append(f"{approach}/{label}/{SEED_PREFIX}{seed}")
             return None
-        return found
+        return values
 
     for seed, curve in experiment.sources.items():
         if (found := evaluation(SOURCE, SOURCE, seed, len(curve.returns))) is not None:
-            source_rows += [(metric, seed, float(found[metric])) for metric in FINAL_METRICS]
+            source_rows += [(metric, seed, found[metric]) for metric in FINAL_METRICS]
     for approach, by_label in experiment.cells.items():
         for label, cell in by_label.items():
             for seed in cell.seeds:
                 if (found := evaluation(approach, label, seed, cell.lengths[seed])) is not None:
-                    rows += [(metric, approach, label, seed, float(found[metric])) for metric in FINAL_METRICS]
+                    rows += [(metric, approach, label, seed, found[metric]) for metric in FINAL_METRICS]
     return FinalPolicies(starts, eval_seed,
                          pd.DataFrame(rows, columns=["metric", *CELL_KEYS, "seed", VALUE]),
                          pd.DataFrame(source_rows, columns=["metric", "seed", VALUE]), stale)

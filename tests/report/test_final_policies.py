@@ -86,7 +86,9 @@ def test_without_evaluations_the_report_has_no_such_section(tmp_path: Path) -> N
 
 
 @pytest.mark.parametrize("text", ["{not json", '{"starts": 4, "eval_seed": 1}',
-                                  '{"starts": 4, "eval_seed": 1, "runs": [{}]}'])
+                                  '{"starts": 4, "eval_seed": 1, "runs": [{}]}',
+                                  '{"starts": 4, "eval_seed": 1, "runs": [{"approach": "pilco", "label": "m1.5", '
+                                  '"seed": 0, "episode": 5, "success_rate": 1.0}]}'])
 def test_a_file_that_is_not_the_scripts_output_is_refused_in_one_line(tmp_path: Path, text: str) -> None:
     root = make_experiment(tmp_path / "cartpole", CARTPOLE)
     (root / FINAL_POLICIES_FILE).write_text(text)
