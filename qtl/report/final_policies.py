@@ -15,7 +15,7 @@ from pathlib import Path
 import pandas as pd
 
 from qtl.report.discover import SEED_PREFIX, Experiment
-from qtl.report.stats import CELL_KEYS, VALUE, per_seed, std_or_none
+from qtl.report.stats import CELL_KEYS, VALUE, JsonStat, over_seeds, stat_json
 from qtl.report.tables import REWARD_DIGITS, approach_grid, stat_text
 
 FINAL_POLICIES_FILE = "final_policies.json"
@@ -78,11 +78,6 @@ def read_final_policies(experiment: Experiment, path: Path | None = None) -> Fin
                          pd.DataFrame(source_rows, columns=["metric", "seed", VALUE]), stale)
 
 
-def _over_seeds(values: pd.Series) -> tuple[float, float, int]:
-    """Mean, std (ddof = 1; NaN for one value) and count of a per-seed series."""
-    return float(values.mean()), float(values.std(ddof=1)), int(values.size)
-
-
 def _text(metric: str, mean: float, std: float) -> str:
     """One cell: a percentage without decimals, a total reward with the paper's two."""
     if PERCENT[metric]:
@@ -94,12 +89,10 @@ def final_tables(found: FinalPolicies, approaches: list[str], labels: list[str])
     """Tables F1-F2: rows approaches, columns labels, ``mean ± std`` over the seeds evaluated, seeds per row."""
     tables = []
     for metric, title in FINAL_METRICS.items():
-        of_metric = found.values[found.values["metric"] == metric]
-        groups = of_metric.groupby(CELL_KEYS, sort=False)[VALUE]
-        stats = groups.agg(["mean", "std", "size"])
+        stats = over_seeds(found.values[found.values["metric"] == metric], CELL_KEYS)
         text = pd.Series([_text(metric, m, s) for m, s in zip(stats["mean"], stats["std"], strict=True)],
                          index=stats.index, dtype=object)
-        table = approach_grid(text, stats["size"], approaches, labels) if len(stats) else "No run evaluated."
+        table = approach_grid(text, stats["n"], approaches, labels) if len(stats) else "No run evaluated."
         tables.append(title.format(starts=found.starts) + "\n\n" + table)
     return tables
 
@@ -115,11 +108,10 @@ def final_policies_markdown(experiment: Experiment, root_text: str | Path, path:
              f"{EVALUATE_COMMAND.format(root=root_text)}` (it writes `{FINAL_POLICIES_FILE}`).",
              *final_tables(found, experiment.approaches, experiment.labels)]
     if not found.sources.empty:
-        cells = []
-        for metric in FINAL_METRICS:
-            mean, std, n = _over_seeds(found.sources.loc[found.sources["metric"] == metric, VALUE])
-            cells.append(_text(metric, mean, std) + (" %" if PERCENT[metric] else ""))
-        parts.append(f"Sources ({n} seeds): success {cells[0]}, total reward {cells[1]}.")
+        sources = over_seeds(found.sources, ["metric"])
+        cells = [_text(metric, sources.loc[metric, "mean"], sources.loc[metric, "std"]) + (" %" if PERCENT[metric]
+                 else "") for metric in FINAL_METRICS]
+        parts.append(f"Sources ({int(sources['n'].iloc[0])} seeds): success {cells[0]}, total reward {cells[1]}.")
     if found.stale:
         parts.append(f"Not in these tables, their last policy not evaluated ({len(found.stale)} run(s); rerun the "
                      "command above): " + ", ".join(found.stale) + ".")
@@ -135,17 +127,13 @@ def final_policies_json(experiment: Experiment) -> dict[str, object] | None:
     out: dict[str, object] = {"starts": found.starts, "eval_seed": found.eval_seed, "stale": found.stale}
     for metric in FINAL_METRICS:
         of_metric = found.values[found.values["metric"] == metric]
-        table: dict[str, dict[str, object]] = {}
-        for (approach, label), cell in of_metric.groupby(CELL_KEYS, sort=False):
-            mean, std, n = _over_seeds(cell[VALUE])
-            table.setdefault(approach, {})[label] = {"mean": mean, "std": std_or_none(std), "n": n,
-                                                     "per_seed": per_seed(cell)}
+        by_cell = of_metric.groupby(CELL_KEYS, sort=False)
+        table: dict[str, dict[str, JsonStat]] = {}
+        for (approach, label), stats in over_seeds(of_metric, CELL_KEYS).iterrows():
+            table.setdefault(approach, {})[label] = stat_json(stats, by_cell.get_group((approach, label)))
         out[metric] = table
         sources = found.sources[found.sources["metric"] == metric]
-        if sources.empty:
-            out[f"source_{metric}"] = None
-            continue
-        mean, std, n = _over_seeds(sources[VALUE])
-        out[f"source_{metric}"] = {"mean": mean, "std": std_or_none(std), "n": n, "per_seed": per_seed(sources)}
+        out[f"source_{metric}"] = (None if sources.empty else
+                                   stat_json(over_seeds(sources, ["metric"]).loc[metric], sources))
     return out
 

@@ -106,3 +106,13 @@ def episode_stats(cell: Cell) -> pd.DataFrame:
 def std_or_none(std: float) -> float | None:
     """A standard deviation as ``tables.json`` holds it: None where one seed left it undefined (NaN)."""
     return None if math.isnan(std) else float(std)
+
+
+JsonStat = dict[str, float | int | dict[str, float] | None]
+
+
+def stat_json(stats: pd.Series, values: pd.DataFrame) -> JsonStat:
+    """Mean, std (None for one seed), number of seeds and the per-seed values of one table cell (``tables.json``):
+    ``stats`` a row of :func:`over_seeds`, ``values`` the cell's per-seed frame."""
+    return {"mean": float(stats["mean"]), "std": std_or_none(stats["std"]), "n": int(stats["n"]),
+            "per_seed": per_seed(values)}

@@ -27,12 +27,12 @@ from qtl.report.reliability import reliability_json, reliability_markdown
 from qtl.report.stats import (
     CELL_KEYS,
     METRICS,
+    JsonStat,
     compliance_table,
     compliance_values,
     over_seeds,
-    per_seed,
     seed_values,
-    std_or_none,
+    stat_json,
 )
 from qtl.report.successes import success_json, success_markdown
 from qtl.report.tables import REWARD_DIGITS, TITLES, markdown, table_numbers, tables_markdown
@@ -46,15 +46,6 @@ TRAIN_COMMAND = "qtl-train"
 RECORD_HINT = ("record it with `python scripts/report.py {root} --record-reference` (or rerun "
                "`python scripts/run_experiment.py aircraft ...`, which reuses the finished runs)")
 
-JsonStat = dict[str, float | int | dict[str, float] | None]
-
-
-def _stat_json(stats: pd.Series, values: pd.DataFrame) -> JsonStat:
-    """Mean, std (None for one seed), number of seeds and the per-seed values of one table cell."""
-    return {"mean": float(stats["mean"]), "std": std_or_none(stats["std"]), "n": int(stats["n"]),
-            "per_seed": per_seed(values)}
-
-
 def tables_json(experiment: Experiment) -> dict[str, object]:
     """The numbers of Tables 1-6 and of the runs behind them, for ``tables.json``."""
     values = seed_values(experiment)
@@ -64,7 +55,7 @@ def tables_json(experiment: Experiment) -> dict[str, object]:
         by_cell = of_metric.groupby(CELL_KEYS, sort=False)
         table = metrics[metric] = {}
         for (approach, label), stats in over_seeds(of_metric, CELL_KEYS).iterrows():
-            table.setdefault(approach, {})[label] = _stat_json(stats, by_cell.get_group((approach, label)))
+            table.setdefault(approach, {})[label] = stat_json(stats, by_cell.get_group((approach, label)))
     compliance = compliance_values(experiment)
     reference = experiment.reference
     return {
@@ -79,7 +70,7 @@ def tables_json(experiment: Experiment) -> dict[str, object]:
                   for a, by_label in experiment.cells.items()},
         "left_out": list(experiment.left_out),
         **metrics,
-        "compliance": {label: {"approach": row["approach"], **_stat_json(row, compliance[
+        "compliance": {label: {"approach": row["approach"], **stat_json(row, compliance[
                            (compliance["approach"] == row["approach"]) & (compliance["label"] == label)])}
                        for label, row in compliance_table(experiment).iterrows()},
         "tables": {str(n): TITLES[n].format(label=experiment.labels[0]) for n in table_numbers(experiment)},
