@@ -32,7 +32,12 @@ from qtl.build import build  # noqa: E402
 from qtl.checkpoint import latest_checkpoint, load_checkpoint  # noqa: E402
 from qtl.episodes import run_episode  # noqa: E402
 from qtl.report.discover import Experiment, discover  # noqa: E402
-from qtl.report.final_policies import FINAL_POLICIES_FILE, SOURCE, final_policies_markdown  # noqa: E402
+from qtl.report.final_policies import (  # noqa: E402
+    FINAL_POLICIES_FILE,
+    SOURCE,
+    final_policies_markdown,
+    read_final_policies,
+)
 from qtl.seeding import ENV_STREAM, derive_seed  # noqa: E402
 
 EVAL_SEED = 1_000_003  # the start states' seed: not a run seed of any sweep, so no start is a training episode's
@@ -115,7 +120,9 @@ def main(argv: list[str] | None = None) -> None:
     output.parent.mkdir(parents=True, exist_ok=True)
     numbers = {"starts": args.starts, "eval_seed": args.eval_seed, "runs": [asdict(e) for e in evaluations]}
     output.write_text(json.dumps(numbers, indent=2, allow_nan=False) + "\n")
-    print(f"Written to {output}.\n\n" + final_policies_markdown(experiment, args.root, output))
+    found = read_final_policies(experiment, output)  # read back: what the report will read
+    assert found is not None, output
+    print(f"Written to {output}.\n\n" + final_policies_markdown(found, experiment, args.root))
 
 
 if __name__ == "__main__":

@@ -97,12 +97,9 @@ def final_tables(found: FinalPolicies, approaches: list[str], labels: list[str])
     return tables
 
 
-def final_policies_markdown(experiment: Experiment, root_text: str | Path, path: Path | None = None) -> str | None:
+def final_policies_markdown(found: FinalPolicies, experiment: Experiment, root_text: str | Path) -> str:
     """The report's section body: how the start states were drawn, Tables F1-F2, the sources and the runs left
-    out, from ``path`` (default ``<root>/final_policies.json``); None without that file."""
-    found = read_final_policies(experiment, path)
-    if found is None:
-        return None
+    out."""
     parts = [f"Each run's last policy, run on its own task from the same {found.starts} start states (drawn with "
              f"seed {found.eval_seed}, none of them a training episode's start), by `"
              f"{EVALUATE_COMMAND.format(root=root_text)}` (it writes `{FINAL_POLICIES_FILE}`).",
@@ -118,12 +115,9 @@ def final_policies_markdown(experiment: Experiment, root_text: str | Path, path:
     return "\n\n".join(parts)
 
 
-def final_policies_json(experiment: Experiment) -> dict[str, object] | None:
+def final_policies_json(found: FinalPolicies) -> dict[str, object]:
     """Tables F1-F2 for ``tables.json``: metric -> approach -> label -> mean, std, n and per-seed values, with the
-    start states' count and seed and the runs left out; None without ``final_policies.json``."""
-    found = read_final_policies(experiment)
-    if found is None:
-        return None
+    start states' count and seed and the runs left out."""
     out: dict[str, object] = {"starts": found.starts, "eval_seed": found.eval_seed, "stale": found.stale}
     for metric in FINAL_METRICS:
         of_metric = found.values[found.values["metric"] == metric]

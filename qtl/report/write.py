@@ -20,7 +20,12 @@ from qtl.report.approaches import approach_name
 from qtl.report.autopilot import flies_helicopter
 from qtl.report.discover import OVERRIDES_FILE, SEED_PREFIX, Experiment, discover, run_overrides
 from qtl.report.figures import FIGURE_STEM, plot_learning_curves
-from qtl.report.final_policies import final_policies_json, final_policies_markdown, read_final_policies
+from qtl.report.final_policies import (
+    FinalPolicies,
+    final_policies_json,
+    final_policies_markdown,
+    read_final_policies,
+)
 from qtl.report.paper import beside_paper_markdown, paper_json
 from qtl.report.record import EXPERIMENT_FILE
 from qtl.report.reliability import reliability_json, reliability_markdown
@@ -46,8 +51,9 @@ TRAIN_COMMAND = "qtl-train"
 RECORD_HINT = ("record it with `python scripts/report.py {root} --record-reference` (or rerun "
                "`python scripts/run_experiment.py aircraft ...`, which reuses the finished runs)")
 
-def tables_json(experiment: Experiment) -> dict[str, object]:
-    """The numbers of Tables 1-6 and of the runs behind them, for ``tables.json``."""
+def tables_json(experiment: Experiment, final: FinalPolicies | None) -> dict[str, object]:
+    """The numbers of Tables 1-6 (and of F1-F2 from ``final``, where evaluated) and of the runs behind them, for
+    ``tables.json``."""
     values = seed_values(experiment)
     metrics: dict[str, dict[str, dict[str, JsonStat]]] = {}
     for metric in METRICS:
@@ -77,7 +83,7 @@ def tables_json(experiment: Experiment) -> dict[str, object]:
         "reference": None if reference is None else reference.to_dict(),
         "paper": paper_json(experiment),
         "successes": success_json(experiment),
-        "final_policies": final_policies_json(experiment),
+        "final_policies": None if final is None else final_policies_json(final),
         "reliability": reliability_json(experiment),
     }
 
@@ -129,15 +135,15 @@ def _commands_markdown(experiment: Experiment) -> str:
             + "\n".join(lines))
 
 
-def report_markdown(experiment: Experiment, figures: Sequence[Path]) -> str:
-    """``report.md``: what was found, Tables 1-6 (and beside the paper's), S1-S3, F1-F2 where the final policies
-    were evaluated, the learning curves, reliability counts and commands."""
+def report_markdown(experiment: Experiment, figures: Sequence[Path], final: FinalPolicies | None) -> str:
+    """``report.md``: what was found, Tables 1-6 (and beside the paper's), S1-S3, F1-F2 from ``final`` where the
+    final policies were evaluated, the learning curves, reliability counts and commands."""
     title = experiment.name or experiment.root.name
     png, *others = figures
     caption = "Learning curves: mean total reward per episode over seeds, error bars ±1 standard deviation."
     reference = experiment.reference
     beside = beside_paper_markdown(experiment)
-    final = final_policies_markdown(experiment, experiment.root)
+    final_text = None if final is None else final_policies_markdown(final, experiment, experiment.root)
     if reference is not None:
         caption += f" Dashed: the {reference.name}'s total reward ({reference.total:.{REWARD_DIGITS}f})."
     sections = [
@@ -147,7 +153,7 @@ def report_markdown(experiment: Experiment, figures: Sequence[Path]) -> str:
         *([] if beside is None else ["## Beside the paper\n\n" + beside]),
         "## Successes (not in the paper)\n\nFrom each episode's success test, over the same episodes as "
         "Tables 1-3.\n\n" + "\n\n".join(success_markdown(experiment)),
-        *([] if final is None else ["## Final policies (not in the paper)\n\n" + final]),
+        *([] if final_text is None else ["## Final policies (not in the paper)\n\n" + final_text]),
         f"## Learning curves\n\n![learning curves]({png.name})\n\n{caption} "
         + " ".join(f"[{p.suffix[1:].upper()}]({p.name})" for p in others),
         "## Reliability\n\nOver every run " + ("in the tables" if experiment.left_out else "found")
@@ -167,7 +173,7 @@ def write_report(root: str | Path, out_dir: str | Path | None = None, *, finishe
     ``scripts/evaluate_policies.py`` did not write, before anything is written.
     """
     experiment = discover(root, finished_only=finished_only)
-    read_final_policies(experiment)  # a final_policies.json it cannot read fails here, before anything is written
+    final = read_final_policies(experiment)  # read once; a file it cannot read fails here, before anything is written
     out = experiment.root / REPORT_DIR if out_dir is None else Path(out_dir).expanduser().resolve()
     out.mkdir(parents=True, exist_ok=True)
     if flies_helicopter(experiment) and experiment.reference is None:
@@ -175,8 +181,8 @@ def write_report(root: str | Path, out_dir: str | Path | None = None, *, finishe
             "%s flies the helicopter but its %s records no autopilot reference: the figure has no autopilot line; %s",
             experiment.root, EXPERIMENT_FILE, RECORD_HINT.format(root=experiment.root))
     figures = plot_learning_curves(experiment, out / FIGURE_STEM, experiment.reference)
-    (out / TABLES_FILE).write_text(json.dumps(tables_json(experiment), indent=2, ensure_ascii=False) + "\n")
+    (out / TABLES_FILE).write_text(json.dumps(tables_json(experiment, final), indent=2, ensure_ascii=False) + "\n")
     report = out / REPORT_FILE
-    report.write_text(report_markdown(experiment, figures), encoding="utf-8")
+    report.write_text(report_markdown(experiment, figures, final), encoding="utf-8")
     logger.info("report written to %s", report)
     return report

@@ -52,7 +52,9 @@ def test_only_evaluations_of_each_runs_last_episode_count(root: Path) -> None:
 
 
 def test_json_cells_are_mean_std_over_the_evaluated_seeds(root: Path) -> None:
-    numbers = final_policies_json(discover(root))
+    found = read_final_policies(discover(root))
+    assert found is not None
+    numbers = final_policies_json(found)
     assert numbers["starts"] == STARTS and numbers["stale"] == ["pilco/m1.5/seed_1", "qtl_bayesian/m2.0/seed_1"]
     pilco = numbers["success_rate"]["pilco"]["m2.0"]
     assert pilco["mean"] == pytest.approx(0.5) and pilco["std"] == pytest.approx(0.5 ** 0.5 / 2) and pilco["n"] == 2
