@@ -15,7 +15,7 @@ from pathlib import Path
 import pandas as pd
 
 from qtl.report.discover import SEED_PREFIX, Experiment
-from qtl.report.stats import CELL_KEYS, VALUE, JsonStat, over_seeds, stat_json
+from qtl.report.stats import CELL_KEYS, VALUE, cells_json, over_seeds, stat_json
 from qtl.report.tables import REWARD_DIGITS, approach_grid, stat_text
 
 FINAL_POLICIES_FILE = "final_policies.json"
@@ -120,12 +120,7 @@ def final_policies_json(found: FinalPolicies) -> dict[str, object]:
     start states' count and seed and the runs left out."""
     out: dict[str, object] = {"starts": found.starts, "eval_seed": found.eval_seed, "stale": found.stale}
     for metric in FINAL_METRICS:
-        of_metric = found.values[found.values["metric"] == metric]
-        by_cell = of_metric.groupby(CELL_KEYS, sort=False)
-        table: dict[str, dict[str, JsonStat]] = {}
-        for (approach, label), stats in over_seeds(of_metric, CELL_KEYS).iterrows():
-            table.setdefault(approach, {})[label] = stat_json(stats, by_cell.get_group((approach, label)))
-        out[metric] = table
+        out[metric] = cells_json(found.values[found.values["metric"] == metric])
         sources = found.sources[found.sources["metric"] == metric]
         out[f"source_{metric}"] = (None if sources.empty else
                                    stat_json(over_seeds(sources, ["metric"]).loc[metric], sources))

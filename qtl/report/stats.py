@@ -116,3 +116,12 @@ def stat_json(stats: pd.Series, values: pd.DataFrame) -> JsonStat:
     ``stats`` a row of :func:`over_seeds`, ``values`` the cell's per-seed frame."""
     return {"mean": float(stats["mean"]), "std": std_or_none(stats["std"]), "n": int(stats["n"]),
             "per_seed": per_seed(values)}
+
+
+def cells_json(values: pd.DataFrame) -> dict[str, dict[str, JsonStat]]:
+    """approach -> label -> :func:`stat_json` of each cell of one metric's per-seed ``values`` (``tables.json``)."""
+    by_cell = values.groupby(CELL_KEYS, sort=False)
+    table: dict[str, dict[str, JsonStat]] = {}
+    for (approach, label), stats in over_seeds(values, CELL_KEYS).iterrows():
+        table.setdefault(approach, {})[label] = stat_json(stats, by_cell.get_group((approach, label)))
+    return table

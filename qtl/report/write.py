@@ -30,12 +30,11 @@ from qtl.report.paper import beside_paper_markdown, paper_json
 from qtl.report.record import EXPERIMENT_FILE
 from qtl.report.reliability import reliability_json, reliability_markdown
 from qtl.report.stats import (
-    CELL_KEYS,
     METRICS,
     JsonStat,
+    cells_json,
     compliance_table,
     compliance_values,
-    over_seeds,
     seed_values,
     stat_json,
 )
@@ -57,11 +56,7 @@ def tables_json(experiment: Experiment, final: FinalPolicies | None) -> dict[str
     values = seed_values(experiment)
     metrics: dict[str, dict[str, dict[str, JsonStat]]] = {}
     for metric in METRICS:
-        of_metric = values[values["metric"] == metric]
-        by_cell = of_metric.groupby(CELL_KEYS, sort=False)
-        table = metrics[metric] = {}
-        for (approach, label), stats in over_seeds(of_metric, CELL_KEYS).iterrows():
-            table.setdefault(approach, {})[label] = stat_json(stats, by_cell.get_group((approach, label)))
+        metrics[metric] = cells_json(values[values["metric"] == metric])
     compliance = compliance_values(experiment)
     reference = experiment.reference
     return {
