@@ -74,7 +74,7 @@ def approach_grid(text: pd.Series, seeds: pd.Series, approaches: Sequence[str], 
     grid = text.unstack("label").reindex(index=list(approaches), columns=list(labels)).fillna(MISSING)
     counts = seeds.groupby(level="approach", sort=False).agg(lambda n: seed_counts(list(n)))
     grid.insert(0, "Approach", [approach_name(a) for a in grid.index])
-    grid["Seeds"] = counts.reindex(grid.index)
+    grid["Seeds"] = counts.reindex(grid.index).fillna(MISSING)  # an approach with no cell in this table
     return markdown(grid)
 
 

@@ -29,6 +29,7 @@ from qtl.report.final_policies import (
 from qtl.report.paper import beside_paper_markdown, paper_json
 from qtl.report.record import EXPERIMENT_FILE
 from qtl.report.reliability import reliability_json, reliability_markdown
+from qtl.report.stability import stability_json, stability_markdown
 from qtl.report.stats import (
     METRICS,
     JsonStat,
@@ -78,6 +79,7 @@ def tables_json(experiment: Experiment, final: FinalPolicies | None) -> dict[str
         "reference": None if reference is None else reference.to_dict(),
         "paper": paper_json(experiment),
         "successes": success_json(experiment),
+        "stability": stability_json(experiment),
         "final_policies": None if final is None else final_policies_json(final),
         "reliability": reliability_json(experiment),
     }
@@ -132,13 +134,15 @@ def _commands_markdown(experiment: Experiment) -> str:
 
 def report_markdown(experiment: Experiment, figures: Sequence[Path], final: FinalPolicies | None) -> str:
     """``report.md``: what was found, Tables 1-6 (and beside the paper's), S1-S3, F1-F2 from ``final`` where the
-    final policies were evaluated, the learning curves, reliability counts and commands."""
+    final policies were evaluated, S4-S5 where the runs logged θ, the learning curves, reliability counts and
+    commands."""
     title = experiment.name or experiment.root.name
     png, *others = figures
     caption = "Learning curves: mean total reward per episode over seeds, error bars ±1 standard deviation."
     reference = experiment.reference
     beside = beside_paper_markdown(experiment)
     final_text = None if final is None else final_policies_markdown(final, experiment, experiment.root)
+    stability = stability_markdown(experiment)
     if reference is not None:
         caption += f" Dashed: the {reference.name}'s total reward ({reference.total:.{REWARD_DIGITS}f})."
     sections = [
@@ -149,6 +153,9 @@ def report_markdown(experiment: Experiment, figures: Sequence[Path], final: Fina
         "## Successes (not in the paper)\n\nFrom each episode's success test, over the same episodes as "
         "Tables 1-3.\n\n" + "\n\n".join(success_markdown(experiment)),
         *([] if final_text is None else ["## Final policies (not in the paper)\n\n" + final_text]),
+        *([] if not stability else ["## Hyper-parameter stability (not in the paper)\n\nSection 5.1: QTL-PILCO "
+                                    "keeps θ steadier than evidence maximisation alone.\n\n"
+                                    + "\n\n".join(stability)]),
         f"## Learning curves\n\n![learning curves]({png.name})\n\n{caption} "
         + " ".join(f"[{p.suffix[1:].upper()}]({p.name})" for p in others),
         "## Reliability\n\nOver every run " + ("in the tables" if experiment.left_out else "found")

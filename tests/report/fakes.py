@@ -42,15 +42,20 @@ HELICOPTER_ENV = {"id": "qtl/Helicopter-v0", "mass": 6.0, "horizon": 200}  # as 
 
 
 def write_run(run_dir: Path, returns: list[float], compliance: list[float] | None = None,
-              overrides: list[str] | None = None, env: dict | None = None, horizon: int | None = None) -> None:
-    """A run directory as ``qtl-train`` leaves it: ``metrics.csv``, ``.hydra/overrides.yaml`` (and ``config.yaml``
-    with ``task.env`` and ``task.horizon`` when ``env`` is given)."""
+              overrides: list[str] | None = None, env: dict | None = None, horizon: int | None = None,
+              extra: dict[str, list[float]] | None = None) -> None:
+    """A run directory as ``qtl-train`` leaves it: ``metrics.csv`` (with the ``extra`` columns, one value per
+    episode, NaN written empty), ``.hydra/overrides.yaml`` (and ``config.yaml`` with ``task.env`` and
+    ``task.horizon`` when ``env`` is given)."""
     compliance = compliance or [NAN] * len(returns)
+    extra = extra or {}
     (run_dir / ".hydra").mkdir(parents=True)
-    rows = ["episode,kind,return,predicted_return,success,compliance"]
+    rows = [",".join(["episode,kind,return,predicted_return,success,compliance", *extra])]
     for episode, (ret, comp) in enumerate(zip(returns, compliance, strict=True)):
         kind = "random" if episode == 0 else "policy"
-        rows.append(f"{episode},{kind},{ret},nan,{int(ret >= 30)},{'' if math.isnan(comp) else comp}")
+        cells = ["" if math.isnan(values[episode]) else repr(values[episode]) for values in extra.values()]
+        rows.append(",".join([f"{episode},{kind},{ret},nan,{int(ret >= 30)},{'' if math.isnan(comp) else comp}",
+                              *cells]))
     (run_dir / METRICS_FILE).write_text("\n".join(rows) + "\n")
     (run_dir / ".hydra" / "overrides.yaml").write_text(yaml.safe_dump(overrides or []))
     if env is not None:
