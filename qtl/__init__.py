@@ -1,3 +1,3 @@
 """qtl: PILCO with qualitative transfer of GP hyper-parameters between related tasks."""
 
-__version__ = "0.1.0"
+__version__ = "1.0.0"

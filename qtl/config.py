@@ -1,6 +1,7 @@
 """Dataclass schema of the Hydra configuration: a typo or a wrong type fails at compose time.
 
-Every key carries its description (``metadata["help"]``); ``qtl-train --help`` lists them.
+Every key carries its description (``metadata["help"]``); ``qtl-train --help`` lists them, and so does the
+configuration reference of the docs (``python -m qtl.config --markdown``), from the same walk of the schema.
 Each option of the ``propagation``, ``policy``, ``optimizer`` and ``rule`` groups has its own
 schema (``<group>/<option>_schema`` in the ConfigStore, named first in the option's defaults list).
 """
@@ -8,7 +9,9 @@ schema (``<group>/<option>_schema`` in the ConfigStore, named first in the optio
 from __future__ import annotations
 
 import dataclasses
+import importlib.resources
 import os
+import re
 import sys
 import typing
 from collections.abc import Iterator
@@ -509,7 +512,7 @@ class TransferConfig:
         default="kernel",
         metadata=doc("kernel | likelihood_ratio: Eq. 14 after Lazaric et al.'s kernel estimate, the source GP's "
                      "predictive smoothed by Scott's bandwidth, or as a tempered source-vs-target likelihood ratio "
-                     "(docs/compliance.md)"),
+                     "(docs/dev/compliance-notes.md)"),
     )
     compliance_temperature: Optional[float] = field(  # noqa: UP045
         default=None, metadata=doc("κ of Eq. 14 (null: the state dimension; likelihood_ratio only)"),
@@ -520,7 +523,7 @@ class TransferConfig:
     compliance_bandwidth: str = field(
         default="scott",
         metadata=doc("scott | none: the kernel compliance's density bandwidth, Scott's rule on the source's Δ "
-                     "(kernel only; docs/compliance.md)"),
+                     "(kernel only; docs/dev/compliance-notes.md)"),
     )
 
 
@@ -663,9 +666,179 @@ def help_text() -> str:
     for group, options in GROUP_SCHEMAS.items():
         lines += ["", f"== {group}=<option> =="]
         for option, schema in options.items():
-            lines.append(f"  {group}={option}: {(schema.__doc__ or '').strip()}")
+            lines.append(f"  {group}={option}: {_summary(schema)}")
             lines += [_entry(key, default, text, "    ") for key, default, text in _keys(schema, f"{group}.")]
     return "\n".join(lines)
+
+
+def _summary(schema: type) -> str:
+    """A group option's one-line description: its schema's docstring."""
+    return (schema.__doc__ or "").strip()
+
+
+# -- the installed config groups ---------------------------------------------------------------------------
+
+CONFIG_PACKAGE = "qtl.configs"
+SCHEMA_SUFFIX = "_schema"  # ConfigStore entries that type an option: no choice of their own
+_PACKAGE_LINE = re.compile(r"#\s*@package\b")
+# The end of a YAML comment's first sentence: a full stop before a capital or the end, not "Eq." or "Fig.".
+_SENTENCE_END = re.compile(r"(?<!\bEq)(?<!\bFig)(?<!\bTab)\.(?=\s+[A-Z]|\s*$)")
+SUMMARY_LENGTH = 160  # a longer first sentence is cut at its first clause
+
+
+def _first_clause(sentence: str) -> str:
+    """``sentence`` up to its first ``:`` or ``;`` outside parentheses and brackets, as a sentence."""
+    depth = 0
+    for i, char in enumerate(sentence):
+        depth += (char in "([") - (char in ")]")
+        if depth == 0 and char in ":;" and sentence[i + 1 : i + 2] == " ":
+            return sentence[:i] + "."
+    return sentence
+
+
+def _comment_summary(text: str) -> str:
+    """The first sentence of a YAML file's leading comment (``# @package`` lines skipped); empty without one.
+
+    A sentence longer than :data:`SUMMARY_LENGTH` is cut at its first clause.
+    """
+    parts: list[str] = []
+    for line in text.splitlines():
+        if not line.startswith("#"):
+            break
+        if not _PACKAGE_LINE.match(line):
+            parts.append(line.lstrip("#").strip())
+    comment = " ".join(part for part in parts if part)
+    end = _SENTENCE_END.search(comment)
+    sentence = comment if end is None else comment[: end.end()]
+    return _first_clause(sentence) if len(sentence) > SUMMARY_LENGTH else sentence
+
+
+def config_groups() -> dict[str, list[tuple[str, str]]]:
+    """Each group of the installed config tree with its options and their one-line descriptions, by name.
+
+    The options are the group's YAML files (``qtl.configs/<group>/<option>.yaml``), each described by the first
+    sentence of its leading comment; the ``<option>_schema`` entries that type them in the ConfigStore are not
+    choices. Hydra's own groups (``hydra/...``) are left out, as Hydra's ``--help`` leaves them out.
+    """
+    groups: dict[str, list[tuple[str, str]]] = {}
+    for folder in sorted(importlib.resources.files(CONFIG_PACKAGE).iterdir(), key=lambda entry: entry.name):
+        if not folder.is_dir() or folder.name == "hydra":
+            continue
+        options = [
+            (file.name.removesuffix(".yaml"), _comment_summary(file.read_text(encoding="utf-8")))
+            for file in sorted(folder.iterdir(), key=lambda entry: entry.name)
+            if file.name.endswith(".yaml") and not file.name.removesuffix(".yaml").endswith(SCHEMA_SUFFIX)
+        ]
+        if options:
+            groups[folder.name] = options
+    return groups
+
+
+def default_options() -> dict[str, str | None]:
+    """The option ``train.yaml`` chooses for each group (None: no option unless one is given)."""
+    train = OmegaConf.load(importlib.resources.files(CONFIG_PACKAGE).joinpath("train.yaml").open(encoding="utf-8"))
+    chosen: dict[str, str | None] = {}
+    for entry in train.defaults:
+        if isinstance(entry, DictConfig):
+            for group, option in entry.items():
+                if "/" not in str(group) and not str(group).startswith("override"):
+                    chosen[str(group)] = option
+    return chosen
+
+
+def groups_text() -> str:
+    """The group list of ``qtl-train --help``: ``group: option, option, ...`` per installed group."""
+    return "\n".join(f"{group}: {', '.join(name for name, _ in options)}" for group, options in config_groups().items())
+
+
+# -- the configuration reference (docs/guide/configuration.md) ------------------------------------------------
+
+REFERENCE_PAGE = "docs/guide/configuration.md"
+REFERENCE_COMMAND = f"python -m qtl.config --markdown > {REFERENCE_PAGE}"
+REFERENCE_INTRO = """\
+# Configuration reference
+
+Every key `qtl-train` reads, with its default and its meaning: the list `qtl-train --help` prints, from the same
+schema (the dataclasses of `qtl/config.py`). Choose a group's option with `group=option` and set a key with
+`key=value`, e.g. `qtl-train task=mountaincar task.env.power=0.5 optimizer=adam optimizer.lr=0.005`; a key the
+schema does not know, or a value of the wrong type, fails before any work. `???` marks a key without a default
+(the task file or the option sets it), `${key}` a default read from another key, `null` an unset optional value.
+"""
+
+
+def _cell(text: str) -> str:
+    """``text`` safe in a Markdown table cell: pipes escaped, no emphasis or HTML read into it."""
+    return text.replace("\\", "\\\\").replace("|", "\\|").replace("*", "\\*").replace("<", "&lt;")
+
+
+def _code(text: str) -> str:
+    """``text`` as an inline code span (a pipe inside one does not split a table cell; a backtick lengthens it)."""
+    fence = "``" if "`" in text else "`"
+    pad = " " if text.startswith("`") or text.endswith("`") else ""
+    return f"{fence}{pad}{text}{pad}{fence}"
+
+
+def _key_table(rows: list[tuple[str, str, str]]) -> list[str]:
+    """The ``key | default | meaning`` table of ``rows`` (dotted key, default, description)."""
+    lines = ["| key | default | meaning |", "| --- | --- | --- |"]
+    lines += [f"| {_code(key)} | {_code(default)} | {_cell(text)} |" for key, default, text in rows]
+    return lines
+
+
+def _option_table(group: str, options: list[tuple[str, str]], default: str | None) -> list[str]:
+    """The ``option | description`` table of a group, its default option marked."""
+    lines = ["| option | description |", "| --- | --- |"]
+    for name, text in options:
+        mark = " (default)" if name == default else ""
+        lines.append(f"| {_code(f'{group}={name}')}{mark} | {_cell(text)} |")
+    return lines
+
+
+def _heading_text(text: str) -> str:
+    """A field's description as a sentence under its section's heading."""
+    text = _cell(text)
+    return f"{text[:1].upper()}{text[1:]}."
+
+
+def reference_markdown() -> str:
+    """The configuration reference page: the keys of ``--help`` (the same walk, the same text), a section per group.
+
+    Top-level keys first, then a section per node of :class:`TrainConfig` in its order (``task``, the groups with a
+    table per option, ``transfer``, ``sweep``, ``kernels``), then the preset groups (``approach``, ...).
+    """
+    keys = list(_keys(TrainConfig))
+    groups = config_groups()
+    defaults = default_options()
+    hints = typing.get_type_hints(TrainConfig)
+    lines = [f"<!-- Generated by `{REFERENCE_COMMAND}` from qtl/config.py: edit there, not here. -->", "",
+             REFERENCE_INTRO, "## Config groups", "", "| group | options | default |", "| --- | --- | --- |"]
+    for group, options in groups.items():
+        chosen = defaults.get(group)
+        names = ", ".join(_code(name) for name, _ in options)
+        lines.append(f"| {_code(group)} | {names} | {_code('null' if chosen is None else chosen)} |")
+    lines += ["", "## Top-level keys", "", *_key_table([row for row in keys if "." not in row[0]])]
+    nodes = [f for f in dataclasses.fields(TrainConfig)
+             if f.name in GROUP_SCHEMAS or f.name in groups or _dataclass_of(hints[f.name]) is not None]
+    for node in nodes:
+        lines += ["", f"## {node.name}", "", _heading_text(node.metadata.get("help", ""))]
+        if node.name not in GROUP_SCHEMAS:
+            if node.name in groups:
+                lines += ["", *_option_table(node.name, groups[node.name], defaults.get(node.name))]
+            lines += ["", *_key_table([row for row in keys if row[0].startswith(f"{node.name}.")])]
+            continue
+        if defaults.get(node.name) is not None:
+            lines[-1] += f" Default: `{node.name}={defaults[node.name]}`."
+        for option, schema in GROUP_SCHEMAS[node.name].items():
+            rows = list(_keys(schema, f"{node.name}."))
+            lines += ["", f"### {node.name}={option}", "", _cell(_summary(schema)), ""]
+            lines += _key_table(rows) if rows else ["No keys of its own."]
+    presets = [group for group in groups if group not in {node.name for node in nodes}]
+    if presets:
+        lines += ["", "## Presets", "", "Groups whose options set keys of several nodes at once "
+                  "(`# @package _global_`), applied over `train.yaml`."]
+        for group in presets:
+            lines += ["", f"### {group}", "", *_option_table(group, groups[group], defaults.get(group))]
+    return "\n".join(lines) + "\n"
 
 
 HELP_TEMPLATE = """\
@@ -676,7 +849,7 @@ qtl-train: learn a task with PILCO, from scratch or with qualitative transfer fr
   qtl-train --cfg job [overrides]                   print the composed config
 
 == Config groups (group=option) ==
-$APP_CONFIG_GROUPS
+{groups}
 
 {keys}
 
@@ -694,7 +867,21 @@ def register_configs() -> None:
             store.store(group=group, name=f"{option}_schema", node=schema)
     # `$` would be read as Hydra's template placeholders and `${` as OmegaConf interpolations.
     keys = help_text().replace("$", "$$").replace("${", "\\${")
+    groups = groups_text().replace("$", "$$").replace("${", "\\${")
     store.store(group="hydra/help", name="qtl",
-                node={"app_name": "qtl-train", "template": HELP_TEMPLATE.format(keys=keys)})
+                node={"app_name": "qtl-train", "template": HELP_TEMPLATE.format(keys=keys, groups=groups)})
     if not OmegaConf.has_resolver(RUN_DIR_RESOLVER):
         OmegaConf.register_new_resolver(RUN_DIR_RESOLVER, run_dir)
+
+
+def main(argv: list[str] | None = None) -> None:
+    """``python -m qtl.config --markdown``: print the configuration reference page (else the ``--help`` key list)."""
+    args = sys.argv[1:] if argv is None else argv
+    if args not in ([], ["--markdown"]):
+        raise SystemExit(f"usage: {REFERENCE_COMMAND}")
+    sys.stdout.reconfigure(encoding="utf-8")  # type: ignore[union-attr]
+    sys.stdout.write(reference_markdown() if args else help_text() + "\n")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,6 +1,6 @@
 """The saturating reward of Eq. 13 in torch: per state, and its expectation under a Gaussian state.
 
-r(x) = exp(−½ (y − y*)ᵀ W (y − y*)), y the angle-augmented state (``qtl.features``), built
+`r(x) = exp(−½ (y − y*)ᵀ W (y − y*))`, y the angle-augmented state (``qtl.features``), built
 from the same declarative spec the environments use (``envs.rewards.SaturatingReward``:
 ``state_dim``, ``angle_dims``, ``target`` y*, ``weight_matrix`` W with the width folded in).
 """
@@ -47,7 +47,7 @@ class RewardSpec(Protocol):
 
 
 class ExpectedSaturatingReward:
-    """r(x) = exp(−½ (y − y*)ᵀ W (y − y*)) (Eq. 13) with y = [x_other, sin θ_a, cos θ_a, …].
+    """`r(x) = exp(−½ (y − y*)ᵀ W (y − y*))` (Eq. 13) with y = [x_other, sin θ_a, cos θ_a, …].
 
     ``target`` `D + K` and ``weight_matrix`` `(D + K) x (D + K)` (symmetric PSD) live in the
     augmented coordinates of :class:`qtl.features.AngleFeatures` with ``angle_dims``.

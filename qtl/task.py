@@ -161,7 +161,7 @@ class Task:
         return diagonal_gaussian(self.start_mean, self.start_std, dtype)
 
     def distance(self, states: np.ndarray) -> np.ndarray:
-        """Distance to the target in the reward's metric, sqrt((y − y*)ᵀ W (y − y*)): `T`."""
+        """Distance to the target in the reward's metric, `sqrt((y − y*)ᵀ W (y − y*))`: `T`."""
         y = augment_angles(states, self.reward.angle_dims) - np.asarray(self.reward.target)
         return np.sqrt(np.einsum("...i,ij,...j->...", y, np.asarray(self.reward.weight), y).clip(min=0.0))
 

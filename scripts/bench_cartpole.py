@@ -48,7 +48,7 @@ def run_seed(seed: int, episodes: int, run_dir: Path, overrides: list[str], thre
     successes = [int(r["success"]) for r in rows]
     return {
         "seed": seed,
-        "run_dir": str(run_dir),
+        "run_dir": benchlib.display_path(run_dir),
         "returns": [float(r["return"]) for r in rows],
         "predicted_returns": [float(r["predicted_return"]) for r in rows],
         "successes": successes,

@@ -170,10 +170,17 @@ def compliance_verdict(family: Family, rows: dict[float, list[dict]]) -> dict[st
     return verdict
 
 
+def run_header() -> str:
+    """How a section of this script names its run: the command, date, machine and commit."""
+    m = benchlib.machine()
+    return (f"`{benchlib.command_line()}` — {benchlib.today()}, {m['cpu']} ({m['cores']} cores), torch {m['torch']}, "
+            f"commit {benchlib.commit()}.")
+
+
 def compliance_section(
     family: Family, rows: dict[float, list[dict]], verdict: dict[str, bool], seeds: list[int], header: str
 ) -> str:
-    """The Λ table of one family, markdown; ``header``: the command, date and commit that made it."""
+    """The Λ table of one family, markdown; ``header``: the command, date, machine and commit that made it."""
     first = rows[family.near[0]][0]
     lines = [
         f"## Task compliance: {family.task}, {family.label(family.source_value)} source",
@@ -258,7 +265,7 @@ def learn(family: Family, args: argparse.Namespace) -> tuple[dict, str]:
     lines = [
         f"## Compliance gate: {family.task}, {family.label(family.source_value)} source",
         "",
-        f"`{benchlib.command_line()}` — {benchlib.today()}, commit {benchlib.commit()}. Per target and seed: PILCO; "
+        f"{run_header()} Per target and seed: PILCO; "
         f"θ-only transfer (`approach={args.approach} transfer.policy=false`, random initial episode); the same with "
         f"`transfer.min_compliance={args.gate}` (the gate, kernel compliance); arm qtl: `approach={args.approach}` as "
         f"its preset (θ_s and ψ_s, initial episode run by ψ_s). {budget} episodes per run (1 random "
@@ -343,7 +350,7 @@ def explore(family: Family, args: argparse.Namespace) -> tuple[dict, str]:
     lines = [
         f"## Compliance: {family.task}, further targets: PILCO, transfer and the gate",
         "",
-        f"`{benchlib.command_line()}` — {benchlib.today()}, commit {benchlib.commit()}. Per target and seed, from the "
+        f"{run_header()} Per target and seed, from the "
         f"{family.label(family.source_value)} source of the same seed: "
         + "; ".join(EXPLORE_ARM_HELP[arm].format(approach=args.approach, gate=args.gate) for arm in arms)
         + f". {budget} episodes per run (1 random + {args.episodes} learned), one torch thread each, {args.jobs} in "
@@ -401,12 +408,12 @@ def measure(family: Family, args: argparse.Namespace) -> dict:
     values = [family.source_value, *family.near, *family.far]
     rows = {v: [initial_compliance(family, v, s, args.overrides) for s in args.seeds] for v in values}
     verdict = compliance_verdict(family, rows)
-    header = f"`{benchlib.command_line()}` — {benchlib.today()}, commit {benchlib.commit()}."
-    section = compliance_section(family, rows, verdict, args.seeds, header)
+    section = compliance_section(family, rows, verdict, args.seeds, run_header())
     benchlib.write_section(f"bench_compliance-{family.task}", section)
     print(section, flush=True)
-    return {"date": benchlib.today(), "command": benchlib.command_line(), "machine": benchlib.machine(),
-            "sources": str(family.sources), "verdict": verdict, "compliance": {str(v): r for v, r in rows.items()}}
+    return {"date": benchlib.today(), "commit": benchlib.commit(), "command": benchlib.command_line(),
+            "machine": benchlib.machine(), "sources": benchlib.display_path(family.sources), "verdict": verdict,
+            "compliance": {str(v): r for v, r in rows.items()}}
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])

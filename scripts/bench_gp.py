@@ -180,10 +180,9 @@ def main() -> None:
         print(f"n={n}: {cold}warm {r['warm_s']:.1f} s ({mean(r['warm_objective']):.4f}), "
               f"{r['warm_runs']} warm L-BFGS run(s)", flush=True)
 
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=benchlib.ROOT, capture_output=True,
-                            text=True).stdout.strip() or "unknown"
-    command = " ".join(["python", "scripts/bench_gp.py", *map(shlex.quote, sys.argv[1:])])
-    info = {"date": benchlib.today(), "command": command, "commit": commit,
+    command = " ".join(["python", "scripts/bench_gp.py", *(shlex.quote(benchlib.relative_token(token))
+                                                          for token in sys.argv[1:])])
+    info = {"date": benchlib.today(), "command": command, "commit": benchlib.commit(),
             "machine": benchlib.machine(),
             "machine_name": args.machine, "threads": args.threads, "load_average_at_start": load}
     benchlib.write_results(args.output, info, rows)

@@ -5,7 +5,7 @@ R = 3 restarts batched over a broadcast W `P x n x n`): the forward pass, and fo
 gradients for A and B (W fixed, as for the GP dynamics; the native forward then forms them too).
 Then one moment-matching rollout plus its policy gradient at n = 250 (E = 4, GP input 6-D;
 `bench_rollout.py`'s case) under each backend.
-Medians of the repeats after one warm-up, 2 torch threads. Writes `docs/bench_kernels.json` and
+Medians of the repeats after one warm-up, 2 torch threads. Writes `docs/bench/kernels.json` and
 its section of `docs/benchmarks.md`.
 
     .venv/bin/python scripts/bench_kernels.py [--repeats 5]
@@ -16,7 +16,6 @@ from __future__ import annotations
 import argparse
 import os
 import statistics
-import subprocess
 import sys
 import time
 from collections.abc import Callable
@@ -39,7 +38,7 @@ ROLLOUT_N = 250
 THREADS = 2
 BACKENDS = ("torch", "native")
 MACHINE = "2-core dev VM"
-OUTPUT = benchlib.ROOT / "docs" / "bench_kernels.json"
+OUTPUT = benchlib.ROOT / "docs" / "bench" / "kernels.json"
 
 
 def problem(n: int, restarts: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -154,9 +153,6 @@ def main() -> None:
             print(rows[-1], file=sys.stderr)
     rollout = bench_rollout_gradient(max(3, args.repeats // 2))
     print(rollout, file=sys.stderr)
-    commit = subprocess.run(
-        ["git", "rev-parse", "--short", "HEAD"], cwd=benchlib.ROOT, capture_output=True, text=True, check=False
-    ).stdout.strip()
     machine = benchlib.machine()
     info = {
         "date": benchlib.today(),
@@ -166,7 +162,7 @@ def main() -> None:
         "torch": machine["torch"],
         "threads": THREADS,
         "repeats": args.repeats,
-        "commit": commit,
+        "commit": benchlib.commit(),
         "load_average_1min": [round(load_before, 2), round(os.getloadavg()[0], 2)],
         "output": benchlib.display_path(OUTPUT),
     }

@@ -145,8 +145,8 @@ def markdown(results: list[dict], info: dict, dense: bool) -> str:
         "",
         intro,
         "",
-        f"`{info['command']}` — {info['date']}, {m['cpu']} ({m['cores']} cores), {THREADS} torch threads, "
-        f"torch {m['torch']}. Results: `{info['output']}`.",
+        f"`{info['command']}` at commit {info['commit']} — {info['date']}, {m['cpu']} ({m['cores']} cores), "
+        f"{THREADS} torch threads, torch {m['torch']}. Results: `{info['output']}`.",
         "",
         "| n | dtype | variant | rollout + gradient (s, median) | rollout only (s) | peak RSS (MiB) "
         "| setup RSS (MiB) | V |",
@@ -187,8 +187,8 @@ def main() -> None:
             results.append(json.loads(out.strip().splitlines()[-1]))
             print(json.dumps(results[-1]), file=sys.stderr)
     output = args.output or BENCH_DIR / ("rollout_dense.json" if args.dense else "rollout.json")
-    info = {"date": benchlib.today(), "command": benchlib.command_line(), "machine": benchlib.machine(),
-            "output": benchlib.display_path(output)}
+    info = {"date": benchlib.today(), "commit": benchlib.commit(), "command": benchlib.command_line(),
+            "machine": benchlib.machine(), "output": benchlib.display_path(output)}
     benchlib.write_results(output, info, results)
     section = markdown(results, info, args.dense)
     benchlib.write_section("bench_rollout_dense" if args.dense else "bench_rollout", section)

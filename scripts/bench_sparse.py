@@ -64,8 +64,9 @@ def markdown(results: list[dict], info: dict) -> str:
     lines = [
         "## Growing data: exact GP, then the sparse GP",
         "",
-        f"`{info['command']}` — {info['date']}, {info['machine']['cpu']} ({info['machine']['cores']} cores), "
-        f"{info['threads']} torch threads, torch {info['machine']['torch']}. Transitions of the "
+        f"`{info['command']}` at commit {info['commit']} — {info['date']}, {info['machine']['cpu']} "
+        f"({info['machine']['cores']} cores), {info['threads']} torch threads, torch {info['machine']['torch']}. "
+        "Transitions of the "
         f"{results[0]['task']} task, collected as in the policy-search benchmark; the model fitted as the loop "
         "fits it (default `model=auto`, "
         f"`model.restarts={info['restarts']}`), exact up to `model.sparse_above` tuples and SGPR with "
@@ -99,8 +100,9 @@ def main() -> None:
         results.append(measure(n, args.restarts, args.repeats, args.seed, args.overrides))
         print(json.dumps(results[-1]), file=sys.stderr, flush=True)
     output = args.output.resolve()
-    info = {"date": benchlib.today(), "command": benchlib.command_line(), "machine": benchlib.machine(),
-            "threads": args.threads, "restarts": args.restarts, "overrides": args.overrides,
+    info = {"date": benchlib.today(), "commit": benchlib.commit(), "command": benchlib.command_line(),
+            "machine": benchlib.machine(), "threads": args.threads, "restarts": args.restarts,
+            "overrides": args.overrides,
             "output": benchlib.display_path(output)}
     benchlib.write_results(output, info, results)
     section = markdown(results, info)

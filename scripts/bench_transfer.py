@@ -122,7 +122,7 @@ def main() -> None:
             curve = Curve.read(run_dir, budget)
             with open(run_dir / TIMINGS_FILE, newline="") as f:
                 search = [float(t["policy_search_s"]) for t in csv.DictReader(f)][1:budget]
-            per_seed.append({"seed": seed, "run_dir": str(run_dir), "returns": curve.returns,
+            per_seed.append({"seed": seed, "run_dir": benchlib.display_path(run_dir), "returns": curve.returns,
                              "policy_search_s_per_episode": statistics.mean(search),
                              "successes": [int(s) for s in curve.successes], "compliance": curve.compliance,
                              "wall_s_this_call": walls[(slug, seed)], **curve.summary()})
@@ -136,9 +136,10 @@ def main() -> None:
     passed = {name: r["median_episodes_to_success"] < pilco for name, r in results.items()
               if name.startswith("QTL") and pilco is not None} if judged else {}
 
-    info = {"date": benchlib.today(), "command": benchlib.command_line(), "machine": benchlib.machine(),
-            "overrides": overrides, "episodes_per_run": budget, "target_pole_mass": args.mass,
-            "sources": str(args.sources), "required": "QTL median episodes to success < PILCO's", "passed": passed,
+    info = {"date": benchlib.today(), "commit": benchlib.commit(), "command": benchlib.command_line(),
+            "machine": benchlib.machine(), "overrides": overrides, "episodes_per_run": budget,
+            "target_pole_mass": args.mass, "sources": benchlib.display_path(args.sources),
+            "required": "QTL median episodes to success < PILCO's", "passed": passed,
             "results": results}
     json_name, section = result_names(args.mass, args.tag)
     out = benchlib.ROOT / "docs" / "bench" / json_name
@@ -151,9 +152,10 @@ def main() -> None:
     lines = [
         f"## Transfer: cart-pole 0.5 kg → {args.mass} kg" + (f" ({args.tag})" if args.tag else ""),
         "",
-        f"`{info['command']}` — {info['date']}, {m['cpu']} ({m['cores']} cores), {args.jobs} runs in parallel with "
-        f"1 torch thread each, torch {m['torch']}. {budget} episodes per target run (1 initial + {args.episodes} "
-        f"learned); sources: the 0.5 kg benchmark runs of the same seeds ({args.source_episodes + 1} episodes, "
+        f"`{info['command']}` at commit {info['commit']} — {info['date']}, {m['cpu']} ({m['cores']} cores), "
+        f"{args.jobs} runs in parallel with 1 torch thread each, torch {m['torch']}. {budget} episodes per target "
+        f"run (1 initial + {args.episodes} learned); sources: the 0.5 kg benchmark runs of the same seeds "
+        f"({args.source_episodes + 1} episodes, "
         f"overrides: `{' '.join(args.source_overrides) or 'none'}`). Target overrides: "
         f"`{' '.join(overrides) or 'none'}`. Success: tip within 0.15 m of the "
         "target for the last 2 s; episode 0 is the initial one (random for PILCO, ψ_s for QTL). AUC: trapezoid "

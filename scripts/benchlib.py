@@ -97,18 +97,33 @@ def peak_rss_mib() -> float:
 
 
 def command_line() -> str:
-    """How this script was invoked, relative to the repository root."""
-    script = Path(sys.argv[0]).resolve()
-    try:
-        script = script.relative_to(ROOT)
-    except ValueError:
-        pass
-    return " ".join(["python", str(script), *sys.argv[1:]])
+    """How this script was invoked, relative to the repository root.
+
+    An absolute path among the arguments, alone or as the value of a ``key=PATH`` token, is written as
+    :func:`display_path` writes it, so that no path of the measuring machine is recorded.
+    """
+    return " ".join(["python", display_path(Path(sys.argv[0])), *map(relative_token, sys.argv[1:])])
 
 
-def display_path(path: Path) -> str:
-    """``path`` relative to the repository root when it lies inside it, else as given."""
-    return str(path.relative_to(ROOT)) if path.is_relative_to(ROOT) else str(path)
+def relative_token(token: str) -> str:
+    """A command-line token with its absolute path (``/…`` or ``key=/…``) as :func:`display_path` writes it."""
+    key, sep, value = token.partition("=")
+    if sep and value.startswith("/"):
+        return f"{key}={display_path(Path(value))}"
+    return display_path(Path(token)) if token.startswith("/") else token
+
+
+def display_path(path: Path | str) -> str:
+    """How a recorded result names ``path``: relative to the repository root when it lies inside it.
+
+    A relative path is taken from the working directory. A path outside the repository is written as
+    ``…/<its name>``: the rest is a path of the measuring machine, which the results in ``docs/`` never record.
+    """
+    absolute = Path(os.path.abspath(path))
+    for candidate in (absolute, absolute.resolve()):
+        if candidate.is_relative_to(ROOT):
+            return candidate.relative_to(ROOT).as_posix()
+    return f"…/{absolute.name}"
 
 
 def write_results(path: Path, info: dict, results: list) -> None:

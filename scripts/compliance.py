@@ -2,7 +2,8 @@
 
 Each run's GP is rebuilt from its last checkpoint (its data and stored θ, no fitting): the source's as
 transfer reads it, each target's as its last model. Printed as a markdown table (one row per target run,
-one column per resolution ρ; ``transfer.compliance_resolution``), and as JSON with ``--json PATH``.
+one column per resolution ρ; ``transfer.compliance_resolution``), and as JSON with ``--json PATH``, the runs
+named relative to the repository.
 ``--compliance`` chooses the estimate as ``transfer.compliance`` does (default: kernel, with
 ``--bandwidth scott``); ``--temperature`` is the likelihood ratio's κ.
 
@@ -19,6 +20,7 @@ from pathlib import Path
 import torch
 
 from qtl.features import AngleFeatures
+from qtl.report.paths import recorded_path
 from qtl.transfer.compliance import BANDWIDTHS, COMPLIANCES, DEFAULT_COMPLIANCE, compliance_value
 from qtl.transfer.source import SourceRun
 
@@ -48,17 +50,18 @@ def main() -> None:
         values = {rho: compliance_value(args.compliance, source_model, model, bandwidth=args.bandwidth,
                                         temperature=args.temperature, resolution=rho)
                   for rho in args.resolution}
-        rows.append({"target": str(path), "episode": target.episode, "n": len(target.dataset),
+        rows.append({"target": recorded_path(path), "episode": target.episode, "n": len(target.dataset),
                      "compliance": {str(rho): value for rho, value in values.items()}})
     how = args.compliance + (f", bandwidth {args.bandwidth}" if args.compliance == "kernel" else "")
-    print(f"source: {args.source} (episode {source.episode}, n = {len(source.dataset)}); compliance: {how}\n")
+    print(f"source: {recorded_path(args.source)} (episode {source.episode}, n = {len(source.dataset)}); "
+          f"compliance: {how}\n")
     print("| target run | n | " + " | ".join(f"Λ, ρ = {rho:g}" for rho in args.resolution) + " |")
     print("| --- | ---: | " + " | ".join("---:" for _ in args.resolution) + " |")
     for row in rows:
         print(f"| {row['target']} | {row['n']} | " + " | ".join(f"{v:.2f}" for v in row["compliance"].values()) + " |")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps({"source": str(args.source), "compliance": args.compliance,
+        args.json.write_text(json.dumps({"source": recorded_path(args.source), "compliance": args.compliance,
                                          "bandwidth": args.bandwidth, "targets": rows}, indent=2) + "\n")
 
 

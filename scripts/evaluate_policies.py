@@ -7,6 +7,8 @@ own task from K start states x_0 ~ N(μ_0, Σ_0) drawn once for all runs (``--ev
 training episode's), prints per approach and target the success rate and mean return over those starts
 (Tables F1-F2, mean ± std over seeds) and writes every run's numbers to ``<root>/final_policies.json``, where
 ``scripts/report.py`` reads them back. No model is fitted and nothing in the run directories is written.
+It needs every run's checkpoints, which a finished sweep in git does not keep (docs/experiments/README.md): a run
+without them is refused, with the others, before anything is run.
 
     python scripts/evaluate_policies.py docs/experiments/cartpole --finished-only --starts 100
 """
@@ -29,7 +31,7 @@ sys.path.insert(0, str(ROOT))
 
 import envs  # noqa: E402,F401  (registers the qtl/ environments)
 from qtl.build import build  # noqa: E402
-from qtl.checkpoint import latest_checkpoint, load_checkpoint  # noqa: E402
+from qtl.checkpoint import CHECKPOINT_DIR, episodes_done, latest_checkpoint, load_checkpoint  # noqa: E402
 from qtl.episodes import run_episode  # noqa: E402
 from qtl.report.discover import Experiment, discover  # noqa: E402
 from qtl.report.final_policies import (  # noqa: E402
@@ -38,9 +40,11 @@ from qtl.report.final_policies import (  # noqa: E402
     final_policies_markdown,
     read_final_policies,
 )
+from qtl.report.paths import recorded_path  # noqa: E402
 from qtl.seeding import ENV_STREAM, derive_seed  # noqa: E402
 
 EVAL_SEED = 1_000_003  # the start states' seed: not a run seed of any sweep, so no start is a training episode's
+NAMED = 3  # runs named in a refusal; the others counted
 
 
 @dataclass(frozen=True)
@@ -79,15 +83,49 @@ def evaluate_run(approach: str, label: str, seed: int, run_dir: Path, episodes: 
                       float(np.mean(returns)), returns)
 
 
-def evaluate(experiment: Experiment, starts: int, eval_seed: int) -> list[Evaluation]:
-    """Every run's final policy: the sources' (approach and label ``source``) first, then the targets'."""
+def runs_of(experiment: Experiment) -> list[tuple[str, str, int, Path, int]]:
+    """(approach, label, seed, run dir, episodes) of every run: the sources' (approach and label ``source``) first."""
     runs = [(SOURCE, SOURCE, seed, experiment.source_dirs[seed], len(curve.returns))
             for seed, curve in experiment.sources.items()]
-    runs += [(approach, label, seed, cell.run_dirs[seed], cell.lengths[seed])
-             for approach, by_label in experiment.cells.items() for label, cell in by_label.items()
-             for seed in cell.seeds]
+    return runs + [(approach, label, seed, cell.run_dirs[seed], cell.lengths[seed])
+                   for approach, by_label in experiment.cells.items() for label, cell in by_label.items()
+                   for seed in cell.seeds]
+
+
+def unevaluable(experiment: Experiment) -> str | None:
+    """What keeps the runs' final policies from being run, in one line (checked before any is), or None.
+
+    Each run needs a checkpoint of its last episode, ``<run>/checkpoints/episode_NNNN.pt``.
+    """
+    missing, behind = [], []
+    for _, _, _, run_dir, episodes in runs_of(experiment):
+        made = episodes_done(run_dir)
+        name = str(run_dir.relative_to(experiment.root))
+        if made == 0:
+            missing.append(name)
+        elif made != episodes:
+            behind.append(f"{name} ({made} checkpointed, {episodes} in metrics.csv)")
+    if missing:
+        return (f"{recorded_path(experiment.root)}: {len(missing)} of {len(runs_of(experiment))} run(s) hold no "
+                f"checkpoint ({CHECKPOINT_DIR}/episode_NNNN.pt), whose policy this script runs: {_named(missing)}; "
+                "a finished sweep kept in git has none: rerun its sweep (the same command makes the same runs) or "
+                "check out the commit that holds them (docs/experiments/README.md)")
+    if behind:
+        return (f"{recorded_path(experiment.root)}: the newest checkpoint is not of the last episode in "
+                f"{len(behind)} run(s): {_named(behind)}; resume them (resume=auto) so that the two agree")
+    return None
+
+
+def _named(runs: list[str]) -> str:
+    """The first :data:`NAMED` of ``runs``, the others counted."""
+    more = f" and {len(runs) - NAMED} more" if len(runs) > NAMED else ""
+    return ", ".join(runs[:NAMED]) + more
+
+
+def evaluate(experiment: Experiment, starts: int, eval_seed: int) -> list[Evaluation]:
+    """Every run's final policy: the sources' (approach and label ``source``) first, then the targets'."""
     found = []
-    for approach, label, seed, run_dir, episodes in runs:
+    for approach, label, seed, run_dir, episodes in runs_of(experiment):
         tic = time.perf_counter()
         found.append(evaluate_run(approach, label, seed, run_dir, episodes, starts, eval_seed))
         print(f"{run_dir.relative_to(experiment.root)}: success {found[-1].success_rate:.0%}, mean return "
@@ -115,6 +153,8 @@ def main(argv: list[str] | None = None) -> None:
         experiment = discover(args.root, finished_only=args.finished_only)
     except ValueError as err:  # no target run (finished, with --finished-only) under root
         parser.error(str(err))
+    if (problem := unevaluable(experiment)) is not None:
+        parser.error(problem)
     evaluations = evaluate(experiment, args.starts, args.eval_seed)
     output = args.output or experiment.root / FINAL_POLICIES_FILE
     output.parent.mkdir(parents=True, exist_ok=True)
@@ -122,7 +162,7 @@ def main(argv: list[str] | None = None) -> None:
     output.write_text(json.dumps(numbers, indent=2, allow_nan=False) + "\n")
     found = read_final_policies(experiment, output)  # read back: what the report will read
     assert found is not None, output
-    print(f"Written to {output}.\n\n" + final_policies_markdown(found, experiment, args.root))
+    print(f"Written to {output}.\n\n" + final_policies_markdown(found, experiment, recorded_path(experiment.root)))
 
 
 if __name__ == "__main__":

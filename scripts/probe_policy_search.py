@@ -21,6 +21,7 @@ import json
 import time
 from pathlib import Path
 
+import benchlib
 import torch
 from omegaconf import DictConfig, OmegaConf
 
@@ -109,7 +110,7 @@ def main() -> None:
         episode = run_episode(env, task, parts.actor(policy), EVALUATION_SEED + k)
         real.append({"return": round(float(episode.rewards.sum()), 2), "success": bool(task.succeeded(episode.states))})
     env.close()
-    print(json.dumps({"run": str(args.run_dir), "episode": checkpoint["episode"], "n": len(data),
+    print(json.dumps({"run": benchlib.display_path(args.run_dir), "episode": checkpoint["episode"], "n": len(data),
                       "overrides": overrides, "fresh": args.fresh, "predicted_before": round(before, 2),
                       "predicted_after": round(found.value, 2),
                       "predicted_after_task_reward": round(after_task, 2),

@@ -23,6 +23,7 @@ import argparse
 import json
 from pathlib import Path
 
+import benchlib
 import torch
 from probe_policy_search import refitted
 from torch import Tensor
@@ -63,7 +64,7 @@ def main() -> None:
     if task.kinematics is not None:
         variants |= {f"{name}_speed": {**kw, "integration": "speed", "kinematics": task.kinematics}
                      for name, kw in list(variants.items())}
-    report = {"run": str(args.run_dir), "data_episode": data_checkpoint["episode"], "n": len(data),
+    report = {"run": benchlib.display_path(args.run_dir), "data_episode": data_checkpoint["episode"], "n": len(data),
               "policy_episode": policy_checkpoint["episode"], "start_scale": args.start_scale, "overrides": overrides}
     params = [p for p in policy.parameters() if p.requires_grad]
 

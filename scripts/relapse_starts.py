@@ -9,7 +9,10 @@ states (from its newest checkpoint's data set) and success tests (``metrics.csv`
   start distribution (P(χ²_D ≤ |z|²), z = (x_0 − μ_0)/σ_0): how far in its tails the policy fails;
 - per seed, the episodes that fail in at least half of the runs that had succeeded before them.
 
-    python scripts/relapse_starts.py docs/experiments/cartpole --finished-only --output /tmp/relapses.json
+It needs every run's newest checkpoint, which a finished sweep kept in git does not hold (docs/experiments/README.md):
+without them it stops, in one line, before reading any run.
+
+    python scripts/relapse_starts.py docs/experiments/cartpole --finished-only --output relapses.json
 """
 
 from __future__ import annotations
@@ -32,9 +35,10 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import envs  # noqa: E402,F401  (registers the qtl/ environments)
-from qtl.checkpoint import latest_checkpoint, load_checkpoint  # noqa: E402
+from qtl.checkpoint import CHECKPOINT_DIR, episodes_done, latest_checkpoint, load_checkpoint  # noqa: E402
 from qtl.metrics import first_success  # noqa: E402
 from qtl.report.discover import discover  # noqa: E402
+from qtl.report.paths import recorded_path  # noqa: E402
 from qtl.report.tables import markdown  # noqa: E402
 
 PERCENTILE_BINS = (0.0, 0.5, 0.75, 0.9, 1.0)  # of the start distribution: the inner half, then the tails
@@ -97,6 +101,12 @@ def run_episodes(approach: str, label: str, seed: int, run_dir: Path, successes:
 def collect(root: Path, finished_only: bool) -> list[Episode]:
     """Every run's episodes after its first success, the sources' (approach and label ``source``) first."""
     experiment = discover(root, finished_only=finished_only)
+    runs = [*experiment.source_dirs.values(), *experiment.run_dirs()]
+    if missing := [run_dir for run_dir in runs if not episodes_done(run_dir)]:
+        raise SystemExit(f"{recorded_path(experiment.root)}: {len(missing)} of {len(runs)} run(s) hold no checkpoint "
+                         f"({CHECKPOINT_DIR}/episode_NNNN.pt), whose data set holds the start states, e.g. "
+                         f"{missing[0].relative_to(experiment.root)}; a finished sweep kept in git has none: rerun "
+                         "its sweep or check out the commit that holds them (docs/experiments/README.md)")
     episodes = []
     for seed, curve in experiment.sources.items():
         episodes += run_episodes(SOURCE, SOURCE, seed, experiment.source_dirs[seed], curve.successes)

@@ -12,7 +12,12 @@ its runs instead of redoing them. ``--quick`` uses the reduced presets (``<name>
 autopilot's total reward is recorded in ``<root>/experiment.yaml`` as the reference line of Fig. 3,
 and ``qtl.report`` writes ``<root>/report/``.
 Extra arguments are Hydra overrides for both sweeps (e.g. ``sweep.root=... hydra.launcher.n_jobs=4``).
-``--status`` runs nothing: it prints, per stage, every run the sweep plans and the episodes each has made.
+``--status`` runs nothing: it prints, per stage, every run the sweep plans and the episodes each has made
+(a finished sweep kept without its checkpoints, as ``docs/experiments/`` keeps it, by its ``metrics.csv``).
+``experiment.yaml`` records the commands with an absolute path in an override (``sweep.root=...``) relative to
+the repository, from whose top the scripts are run. A sweep root whose runs are kept without their checkpoints
+(a finished sweep in git, ``docs/experiments/README.md``) is refused: resuming needs them, and a fresh start would
+overwrite the kept files; rerun it into another ``sweep.root``.
 """
 
 from __future__ import annotations
@@ -26,10 +31,12 @@ from pathlib import Path
 
 from hydra import compose, initialize_config_module
 
+from qtl.checkpoint import episodes_done
 from qtl.config import register_configs
 from qtl.launch import planned_runs
 from qtl.report import EXPERIMENT_FILE, REPORT_DIR, ExperimentRecord, record_reference, write_report
-from qtl.report.progress import progress_markdown, sweep_progress
+from qtl.report.paths import recorded_override
+from qtl.report.progress import PlannedRun, episodes_made, progress_markdown, sweep_progress
 
 EXPERIMENTS = ("cartpole", "mountaincar", "aircraft")
 
@@ -42,6 +49,11 @@ def sweep_root(preset: str, overrides: list[str]) -> Path:
     return Path(cfg.sweep.root)
 
 
+def kept_without_checkpoints(runs: list[PlannedRun]) -> list[Path]:
+    """The runs that have made episodes (their ``metrics.csv``) but hold no checkpoint to resume them from."""
+    return [run.run_dir for run in runs if not episodes_done(run.run_dir) and episodes_made(run.run_dir)]
+
+
 def main() -> None:
     """Record the experiment, run both sweeps, record the reference line, write the report."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -52,15 +64,21 @@ def main() -> None:
     args, overrides = parser.parse_known_args()
     name = f"{args.experiment}_quick" if args.quick else args.experiment
     root = sweep_root(name, [o for o in overrides if not o.startswith("hydra.")])
+    planned = {f"{stage} ({preset})": planned_runs(preset, overrides)
+               for stage, preset in (("sources", f"{name}_source"), ("targets", name))}
     if args.status:
-        stages = {f"{stage} ({preset})": sweep_progress(planned_runs(preset, overrides))
-                  for stage, preset in (("sources", f"{name}_source"), ("targets", name))}
+        stages = {stage: sweep_progress(runs) for stage, runs in planned.items()}
         print(f"{root}\n\n{progress_markdown(stages, root)}", end="")
         return
+    if kept := kept_without_checkpoints([run for runs in planned.values() for run in runs]):
+        parser.exit(1, f"{parser.prog}: {len(kept)} run(s) under {root} are kept without their checkpoints (e.g. "
+                       f"{kept[0].relative_to(root) if kept[0].is_relative_to(root) else kept[0]}), so they can be "
+                       "neither resumed nor restarted there without losing their files: rerun the sweep into another "
+                       "sweep.root (docs/experiments/README.md)\n")
     commands = [[sys.executable, "-m", "qtl", f"experiment={preset}", *overrides] for preset in
                 (f"{name}_source", name)]
     root.mkdir(parents=True, exist_ok=True)
-    shown = [shlex.join(["qtl-train", *c[3:]]) for c in commands]
+    shown = [shlex.join(["qtl-train", *map(recorded_override, c[3:])]) for c in commands]
     ExperimentRecord(name=args.experiment, commands=shown).write(root)
     for stage, (command, line) in enumerate(zip(commands, shown, strict=True), start=1):
         print(f"[{stage}/2] {line}", flush=True)

@@ -172,8 +172,8 @@ success:
 """
 
 
-def test_readme_recipe_own_task_from_a_search_path(tmp_path):
-    """The README's "add your own task": any Box env, start and reward in the task file."""
+def test_byo_env_recipe_own_task_from_a_search_path(tmp_path):
+    """docs/guide/byo-env.md's recipe: any Box env, its start and reward in the task file on a search path."""
     (tmp_path / "my_configs" / "task").mkdir(parents=True)
     (tmp_path / "my_configs" / "task" / "pendulum.yaml").write_text(PENDULUM_TASK)
     tiny = [a for a in TINY if not a.startswith("task.")]

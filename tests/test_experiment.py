@@ -97,16 +97,37 @@ def test_the_aircraft_driver_records_the_autopilot_line_before_the_report(tmp_pa
 
     monkeypatch.setattr(run_experiment.subprocess, "run", sweep)
     monkeypatch.setattr(sys, "argv", ["run_experiment.py", "aircraft", "--quick", f"sweep.root={root}"])
+    monkeypatch.chdir(tmp_path)  # run from above the sweep: experiment.yaml names it relative, not as this machine's
     run_experiment.main()
     assert stages == ["experiment=aircraft_quick_source", "experiment=aircraft_quick"]
     record = ExperimentRecord.read(root)
     assert record.name == "aircraft" and len(record.commands) == 2
+    assert record.commands[1] == "qtl-train experiment=aircraft_quick sweep.root=aircraft_quick"
     assert record.reference is not None and record.reference.name == "autopilot"
     assert record.reference.total == pytest.approx(autopilot_return({"horizon": 60}))
     assert record.reference.total != pytest.approx(autopilot_return())  # the runs' 60-step episodes, not 200
     tables = json.loads((root / "report" / "tables.json").read_text())
     assert tables["reference"] == {"name": "autopilot", "return": record.reference.total}
     assert "reference" in yaml.safe_load((root / "experiment.yaml").read_text())
+
+
+def test_a_sweep_kept_without_its_checkpoints_is_refused_before_anything_runs(tmp_path, monkeypatch, capsys):
+    # A finished sweep in git keeps its CSVs, not its checkpoints (docs/experiments/README.md): resume=auto would
+    # start its runs afresh over the kept files.
+    root = tmp_path / "cartpole_quick"
+    write_run(root / "source" / "seed_0", [0.0, 5.0])
+
+    def sweep(command: list[str], check: bool) -> None:
+        raise AssertionError(f"ran {command}")
+
+    monkeypatch.setattr(run_experiment.subprocess, "run", sweep)
+    monkeypatch.setattr(sys, "argv", ["run_experiment.py", "cartpole", "--quick", f"sweep.root={root}"])
+    with pytest.raises(SystemExit) as stop:
+        run_experiment.main()
+    err = capsys.readouterr().err
+    assert stop.value.code == 1 and err.count("\n") == 1
+    assert "1 run(s) under" in err and "(e.g. source/seed_0)" in err and "another sweep.root" in err
+    assert not (root / "experiment.yaml").exists()
 
 
 @pytest.mark.parametrize("preset", sorted(p.stem for p in (ROOT / "configs" / "experiment").glob("*.yaml")

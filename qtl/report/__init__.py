@@ -3,8 +3,10 @@
 ``discover`` reads the runs (:mod:`~qtl.report.discover`), :mod:`~qtl.report.stats` computes mean ± std
 over seeds with pandas, :mod:`~qtl.report.tables` and :mod:`~qtl.report.figures` draw them,
 :mod:`~qtl.report.paper` holds the paper's published numbers to set beside them,
-:mod:`~qtl.report.autopilot` records the helicopter's reference line when the experiment runs, and
-``write_report`` puts ``report.md``, ``tables.json`` and the figure together.
+:mod:`~qtl.report.autopilot` records the helicopter's reference line when the experiment runs,
+``write_report`` puts ``report.md``, ``tables.json`` and the figure together, ``export`` copies the small files
+a finished experiment's report is rebuilt from (:mod:`~qtl.report.export`), and :mod:`~qtl.report.cli` is
+``qtl-report``. Recorded paths are relative to the repository (:mod:`~qtl.report.paths`).
 """
 
 from __future__ import annotations
@@ -19,7 +21,9 @@ from qtl.report.approaches import (
 )
 from qtl.report.autopilot import autopilot_return, flies_helicopter, record_reference
 from qtl.report.discover import SEED_PREFIX, SOURCE_DIR, TARGET_DIR, Cell, Experiment, discover, label_order
+from qtl.report.export import export, export_files
 from qtl.report.figures import legend_entries, plot_learning_curves
+from qtl.report.paths import recorded_path
 from qtl.report.record import EXPERIMENT_FILE, ExperimentRecord, Reference
 from qtl.report.stats import compliance_table, metric_table
 from qtl.report.tables import tables_markdown
@@ -46,12 +50,15 @@ __all__ = [
     "autopilot_return",
     "compliance_table",
     "discover",
+    "export",
+    "export_files",
     "flies_helicopter",
     "label_order",
     "legend_entries",
     "metric_table",
     "plot_learning_curves",
     "record_reference",
+    "recorded_path",
     "tables_json",
     "tables_markdown",
     "write_report",

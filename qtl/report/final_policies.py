@@ -15,6 +15,7 @@ from pathlib import Path
 import pandas as pd
 
 from qtl.report.discover import SEED_PREFIX, Experiment
+from qtl.report.paths import recorded_path
 from qtl.report.stats import CELL_KEYS, VALUE, cells_json, over_seeds, stat_json
 from qtl.report.tables import REWARD_DIGITS, approach_grid, stat_text
 
@@ -54,8 +55,9 @@ def read_final_policies(experiment: Experiment, path: Path | None = None) -> Fin
         by_run = {(r["approach"], r["label"], int(r["seed"])):
                   (int(r["episode"]), {metric: float(r[metric]) for metric in FINAL_METRICS}) for r in numbers["runs"]}
     except (ValueError, KeyError, TypeError) as err:
+        command = EVALUATE_COMMAND.format(root=recorded_path(experiment.root))
         raise ValueError(f"{path} is not what scripts/evaluate_policies.py writes ({type(err).__name__}: {err}); "
-                         f"move it away or rerun `{EVALUATE_COMMAND.format(root=experiment.root)}`") from err
+                         f"move it away or rerun `{command}`") from err
     rows, source_rows, stale = [], [], []
 
     def evaluation(approach: str, label: str, seed: int, episodes: int) -> dict[str, float] | None:

@@ -2,8 +2,9 @@
 
 A full-scale sweep outlasts a working session, and its runs are continued by repeating the command
 (``resume=auto``). Given the runs a sweep plans (``qtl.launch.planned_runs`` expands a preset's
-Hydra sweep into them), ``sweep_progress`` reads what each has checkpointed and the time its
-episodes took (``timings.csv``), ``remaining_hours`` prices the episodes still to make at the finished runs'
+Hydra sweep into them), ``sweep_progress`` reads what each has made (its checkpoints; a finished run kept
+without them, as ``docs/experiments/`` keeps it, by its ``metrics.csv``) and the time its episodes took
+(``timings.csv``), ``remaining_hours`` prices the episodes still to make at the finished runs'
 pace, and ``progress_markdown`` puts it in a table.
 """
 
@@ -17,7 +18,7 @@ from pathlib import Path
 import pandas as pd
 
 from qtl.checkpoint import episodes_done
-from qtl.recorder import TIMINGS_FILE
+from qtl.recorder import METRICS_FILE, TIMINGS_FILE
 from qtl.report.tables import markdown
 
 
@@ -32,7 +33,7 @@ class PlannedRun:
 
 @dataclass(frozen=True)
 class RunProgress:
-    """A planned run as found on disk: episodes checkpointed and the seconds each recorded episode took."""
+    """A planned run as found on disk: episodes made and the seconds each recorded episode took."""
 
     run: PlannedRun
     done: int
@@ -59,11 +60,24 @@ def _recorded_seconds(run_dir: Path, episodes: int) -> tuple[float, ...]:
     return tuple(float(row["episode_s"]) for row in rows[:episodes])
 
 
+def episodes_made(run_dir: Path) -> int:
+    """Episodes a run has made: those checkpointed (what a resume continues from), or, in a run kept without its
+    checkpoints (a finished sweep in git), the rows of its ``metrics.csv``; 0 where neither exists."""
+    checkpointed = episodes_done(run_dir)  # 0 where the directory does not exist yet
+    if checkpointed:
+        return checkpointed
+    path = run_dir / METRICS_FILE
+    if not path.is_file():
+        return 0
+    with open(path, newline="") as f:
+        return sum(1 for _ in csv.DictReader(f))
+
+
 def sweep_progress(runs: Sequence[PlannedRun]) -> list[RunProgress]:
     """What each planned run has made so far (0 episodes for a run not begun)."""
     found = []
     for run in runs:
-        done = min(episodes_done(run.run_dir), run.episodes)  # 0 where the directory does not exist yet
+        done = min(episodes_made(run.run_dir), run.episodes)
         found.append(RunProgress(run=run, done=done, episode_seconds=_recorded_seconds(run.run_dir, done)))
     return found
 

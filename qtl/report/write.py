@@ -27,6 +27,7 @@ from qtl.report.final_policies import (
     read_final_policies,
 )
 from qtl.report.paper import beside_paper_markdown, paper_json
+from qtl.report.paths import recorded_path
 from qtl.report.record import EXPERIMENT_FILE
 from qtl.report.reliability import reliability_json, reliability_markdown
 from qtl.report.stability import stability_json, stability_markdown
@@ -62,7 +63,7 @@ def tables_json(experiment: Experiment, final: FinalPolicies | None) -> dict[str
     reference = experiment.reference
     return {
         "experiment": experiment.name,
-        "root": str(experiment.root),
+        "root": recorded_path(experiment.root),
         "approaches": {a: approach_name(a) for a in experiment.approaches},
         "labels": experiment.labels,
         "sources": {str(seed): len(curve.returns) for seed, curve in experiment.sources.items()},
@@ -95,7 +96,8 @@ def _command_of(run_dir: Path) -> str:
 
 def _found_markdown(experiment: Experiment) -> str:
     """What the report was made from: source runs, approaches, labels, seeds and episodes per cell."""
-    lines = [f"- Root: `{experiment.root}`", f"- Experiment: {experiment.name or f'unnamed (no {EXPERIMENT_FILE})'}"]
+    lines = [f"- Root: `{recorded_path(experiment.root)}`",
+             f"- Experiment: {experiment.name or f'unnamed (no {EXPERIMENT_FILE})'}"]
     if experiment.sources:
         lengths = ", ".join(f"{SEED_PREFIX}{s}: {len(c.returns)}" for s, c in experiment.sources.items())
         lines.append(f"- Source runs: {len(experiment.sources)} ({lengths} episodes)")
@@ -141,7 +143,7 @@ def report_markdown(experiment: Experiment, figures: Sequence[Path], final: Fina
     caption = "Learning curves: mean total reward per episode over seeds, error bars ±1 standard deviation."
     reference = experiment.reference
     beside = beside_paper_markdown(experiment)
-    final_text = None if final is None else final_policies_markdown(final, experiment, experiment.root)
+    final_text = None if final is None else final_policies_markdown(final, experiment, recorded_path(experiment.root))
     stability = stability_markdown(experiment)
     if reference is not None:
         caption += f" Dashed: the {reference.name}'s total reward ({reference.total:.{REWARD_DIGITS}f})."
@@ -181,7 +183,7 @@ def write_report(root: str | Path, out_dir: str | Path | None = None, *, finishe
     if flies_helicopter(experiment) and experiment.reference is None:
         logger.warning(
             "%s flies the helicopter but its %s records no autopilot reference: the figure has no autopilot line; %s",
-            experiment.root, EXPERIMENT_FILE, RECORD_HINT.format(root=experiment.root))
+            experiment.root, EXPERIMENT_FILE, RECORD_HINT.format(root=recorded_path(experiment.root)))
     figures = plot_learning_curves(experiment, out / FIGURE_STEM, experiment.reference)
     (out / TABLES_FILE).write_text(json.dumps(tables_json(experiment, final), indent=2, ensure_ascii=False) + "\n")
     report = out / REPORT_FILE

@@ -2,7 +2,7 @@
 
 The source definition, Lazaric, Restelli & Bonarini (ICML 2008), as the public reimplementation in
 trlib (github.com/AndreaTirinzoni/iw-transfer-rl, ``lazaric2008.py``) has it; the paper's own text
-was not at hand, see ``docs/compliance.md`` for what is known and from where. A target tuple
+was not at hand, see ``docs/dev/compliance-notes.md`` for what is known and from where. A target tuple
 τ_i = ⟨s_i, a_i, s'_i, r_i⟩ is compared with the source tuples ⟨s_j, a_j, s'_j, r_j⟩ through
 Gaussian kernels φ_δ(d) = exp(−d²/δ). Weights w_ij ∝ φ_δsa(‖(s_i, a_i) − (s_j, a_j)‖), normalised
 over the source tuples j, pick the source tuples near the target's state-action; the transition
@@ -29,7 +29,7 @@ bandwidth. :func:`kernel_compliance` takes Scott's rule (``bandwidth="scott"``, 
 Δ over the source's m tuples; smoothing the source GP's predictive N(μ, v) with N(0, h_a²) gives
 N(μ, v + h_a²). It depends on the source's data only, so one scale serves every target.
 ``bandwidth="none"`` keeps the GP's predictive alone: on our near-deterministic simulators v is
-tiny and Λ is then near 0 on every target but the source task itself (``docs/compliance.md``).
+tiny and Λ is then near 0 on every target but the source task itself (``docs/dev/compliance-notes.md``).
 
 On near-deterministic simulators both predictive variances are tiny, each tuple's log-likelihood
 ratio is in the hundreds and the two-hypothesis Λ saturates at 0 or 1 whatever κ. ``resolution``
@@ -205,7 +205,7 @@ def kernel_compliance(
 
 
 # The compliances by name; "kernel" (Lazaric et al.'s definition, Scott's bandwidth) is the default since
-# scripts/bench_compliance.py measured it (docs/compliance.md); "likelihood_ratio" is the earlier estimate.
+# scripts/bench_compliance.py measured it (docs/dev/compliance-notes.md); "likelihood_ratio" is the earlier estimate.
 COMPLIANCES: dict[str, Callable[..., Compliance | KernelCompliance]] = {
     "likelihood_ratio": task_compliance,
     "kernel": kernel_compliance,

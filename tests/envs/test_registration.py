@@ -169,9 +169,9 @@ def test_render_tasks_script_covers_every_id(tmp_path: Path) -> None:
     """`scripts/render_tasks.py` writes one image and one page section per registered id."""
     script = Path(__file__).resolve().parents[2] / "scripts" / "render_tasks.py"
     subprocess.run([sys.executable, str(script), "--docs-dir", str(tmp_path)], check=True)
-    page = (tmp_path / "tasks.md").read_text(encoding="utf-8")
+    page = (tmp_path / "guide" / "tasks.md").read_text(encoding="utf-8")  # the site's "The benchmark tasks"
     for env_id in ALL_IDS:
         assert f"(`{env_id}`)" in page
     images = sorted(p.name for p in (tmp_path / "img").glob("*.png"))
     assert len(images) == len(ALL_IDS)
-    assert all(f"](img/{name})" in page for name in images)
+    assert all(f"](../img/{name})" in page for name in images)  # relative to docs/guide/

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from qtl.recorder import TIMINGS_FILE
+from qtl.recorder import METRICS_FILE, TIMINGS_FILE
 from qtl.report.progress import PlannedRun, progress_markdown, remaining_hours, sweep_progress
 
 
@@ -44,3 +44,15 @@ def test_the_time_to_go_averages_each_episode_over_the_finished_runs_and_needs_o
     _fake_run(plan[3].run_dir, 2, [1.0, 1.0])
     done = sweep_progress(plan[1:])
     assert remaining_hours(done) == 0.0 and "to go" not in progress_markdown({"targets": done})
+
+
+def test_a_run_kept_without_its_checkpoints_counts_its_metrics_rows(tmp_path):
+    # A finished sweep in git keeps each run's CSVs and config, not its checkpoints (docs/experiments/README.md).
+    plan = [PlannedRun(tmp_path / f"seed_{s}", (f"seed={s}",), episodes=3) for s in range(2)]
+    plan[0].run_dir.mkdir()
+    (plan[0].run_dir / METRICS_FILE).write_text("episode,return\n0,1.0\n1,2.0\n2,3.0\n")
+    (plan[0].run_dir / TIMINGS_FILE).write_text("episode,episode_s\n0,10\n1,20\n2,30\n")
+    _fake_run(plan[1].run_dir, 1, [5.0, 6.0])  # checkpoints where present say what a resume continues from
+    (plan[1].run_dir / METRICS_FILE).write_text("episode,return\n0,1.0\n1,2.0\n")
+    progress = sweep_progress(plan)
+    assert [(p.done, p.finished, p.seconds) for p in progress] == [(3, True, 60.0), (1, False, 5.0)]

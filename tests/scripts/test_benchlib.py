@@ -95,3 +95,26 @@ def test_each_generated_section_of_the_benchmarks_doc_holds_only_its_own_heading
     assert len(sections) == text.count(":begin -->") == text.count(":end -->")
     crowded = [name for name, body in sections if len(re.findall(r"^## ", body, flags=re.M)) > 1]
     assert not crowded, f"sections holding more than their own '## ' heading: {crowded}"
+
+
+def test_recorded_paths_are_relative_to_the_repository(monkeypatch, tmp_path) -> None:
+    """A path inside the repository is recorded relative to it; one outside it by its name only."""
+    root = benchlib.ROOT
+    assert benchlib.display_path(root / "docs" / "bench" / "gp.json") == "docs/bench/gp.json"
+    assert benchlib.display_path(tmp_path / "runs" / "seed_0") == "…/seed_0"  # tmp_path: outside the checkout
+    monkeypatch.chdir(root)
+    assert benchlib.display_path(Path("runs") / "x") == "runs/x"
+    monkeypatch.setattr(sys, "argv", [
+        str(root / "scripts" / "bench_transfer.py"), "--sources", str(root / "runs" / "a"), f"cartpole={root}/runs/b",
+        "--output", str(tmp_path / "out.json"), "task.horizon=10", "task.search_reward={angles: absolute}"])
+    assert benchlib.command_line() == ("python scripts/bench_transfer.py --sources runs/a cartpole=runs/b "
+                                       "--output …/out.json task.horizon=10 task.search_reward={angles: absolute}")
+
+
+def test_the_recorded_results_name_no_path_of_the_measuring_machine() -> None:
+    docs = Path(__file__).resolve().parents[2] / "docs"
+    files = [docs / "benchmarks.md", *sorted((docs / "bench").iterdir())]
+    found = [f"{path.relative_to(docs)}: {hit}" for path in files
+             for hit in re.findall(r"(?:/work|/tmp|/home|/root|/Users)/[^\s\"`]+", path.read_text())]
+    assert not found, found
+    assert not (docs / "bench_kernels.json").exists() and (docs / "bench" / "kernels.json").is_file()

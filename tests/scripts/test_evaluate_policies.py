@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import json
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -78,3 +79,16 @@ def test_bad_arguments_are_refused_in_one_line(tmp_path: Path) -> None:
     empty = _call(str(tmp_path))  # a directory without runs: named in one line, nothing written
     assert empty.returncode == 2 and "Traceback" not in empty.stderr and str(tmp_path) in empty.stderr
     assert not (tmp_path / "final_policies.json").exists()
+
+
+def test_runs_without_their_checkpoints_are_refused_in_one_line_before_any_work(experiment: Path,
+                                                                                tmp_path: Path) -> None:
+    # A finished sweep kept in git holds no checkpoints (docs/experiments/README.md): the script names what is missing.
+    lean = tmp_path / "lean"
+    shutil.copytree(experiment, lean, ignore=shutil.ignore_patterns("checkpoints", FINAL_POLICIES_FILE))
+    done = _call(str(lean), "--starts", "2")
+    assert done.returncode == 2 and "Traceback" not in done.stderr
+    last = done.stderr.strip().splitlines()[-1]
+    assert f"1 of 1 run(s) hold no checkpoint (checkpoints/episode_NNNN.pt), whose policy this script runs: " \
+           f"target/pilco/m0.5/seed_{SEED};" in last
+    assert not (lean / FINAL_POLICIES_FILE).exists()

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -64,3 +65,12 @@ def test_a_run_without_its_config_is_refused_in_one_line(tmp_path: Path) -> None
     assert done.stderr.strip().splitlines()[-1].endswith("run it with qtl-train, which writes the config it ran")
     assert _call(str(tmp_path / "nope")).stderr.strip().splitlines()[-1].endswith(
         "is not a directory: give an experiment directory")
+
+
+def test_runs_without_their_checkpoints_are_refused_in_one_line(tmp_path: Path) -> None:
+    run = tmp_path / "target" / "pilco" / "m1.5" / "seed_0"
+    _run(run, [0, 36, 20])
+    shutil.rmtree(run / "checkpoints")  # as a finished sweep kept in git holds it
+    done = _call(str(tmp_path))
+    assert done.returncode == 1 and "Traceback" not in done.stderr
+    assert "1 of 1 run(s) hold no checkpoint" in done.stderr.strip().splitlines()[-1]

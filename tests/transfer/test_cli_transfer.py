@@ -1,4 +1,4 @@
-"""The README's transfer command through the real CLI, and its bad-input messages, on a tiny budget."""
+"""The transfer commands of docs/guide/transfer.md through the real CLI, and its bad-input messages, tiny budget."""
 
 from __future__ import annotations
 
