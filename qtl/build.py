@@ -10,17 +10,17 @@ from typing import Any, Protocol
 import numpy as np
 import torch
 from hydra.errors import InstantiationException
-from hydra.utils import instantiate
+from hydra.utils import get_class, instantiate
 from omegaconf import DictConfig, OmegaConf
 from torch import Tensor, nn
 
+from qtl.config.validate import check_dropout, check_lr_scales, checked_task
 from qtl.data import TransitionDataset, gp_training_pairs
 from qtl.episodes import Actor, policy_actor
 from qtl.errors import UserError
 from qtl.features import AngleFeatures
 from qtl.gaussian import Gaussian
-from qtl.kernels import use_backend
-from qtl.kernels.formulation import use_formulation
+from qtl.kernels import Engine
 from qtl.models import DynamicsGP, GPHyperparameters, ModelFit, PreviousFit
 from qtl.policies import Policy, SquashedPolicy
 from qtl.policy_search import SearchResult
@@ -36,7 +36,7 @@ START_DRAWS = 1000
 
 
 class PolicySearch(Protocol):
-    """What ``instantiate(cfg.optimizer)`` gives: ψ improved in place to maximise the objective (lines 6-9)."""
+    """What ``build_search(cfg.optimizer)`` gives: ψ improved in place to maximise the objective (lines 6-9)."""
 
     def __call__(
         self,
@@ -85,7 +85,12 @@ class Parts:
     make_propagator: PropagatorFactory  # the ``propagation`` group
     search: PolicySearch  # the ``optimizer`` group
     make_policy: PolicyFactory  # the ``policy`` group
-    kernel_backend: str  # the exp sums' engine in effect (``kernels.backend``, resolved)
+    engine: Engine  # the code that computes moments and exp sums (``kernels.*``, resolved), in every propagator
+
+    @property
+    def kernel_backend(self) -> str:
+        """The exp sums' code in effect: ``native`` or ``torch`` (``kernels.backend``, resolved)."""
+        return self.engine.exp_sums
 
     def initial_policy(self) -> SquashedPolicy:
         """π(ψ_0) as PILCO starts it (line 1): the configured policy around the start state, squashed, on the device."""
@@ -139,20 +144,28 @@ def instantiate_checked(node: DictConfig) -> Any:  # whatever the node's `_targe
         raise
 
 
+def build_search(node: DictConfig) -> PolicySearch:
+    """The ``optimizer`` group's search: the class its ``_target_`` names, given the group's other keys as settings."""
+    options = OmegaConf.to_container(node, resolve=True)
+    search = get_class(options.pop("_target_"))
+    return search(search.settings_type(**options))  # a bad setting: the settings' own ValueError
+
+
 def build(cfg: DictConfig) -> Parts:
     """The parts of ``cfg``, every one checked before any work: device, task (env, spaces), components."""
     dtype = DTYPES[cfg.dtype]
     device = resolve_device(cfg.device)
-    task = Task.from_config(OmegaConf.to_container(cfg.task, resolve=True))
-    kernel_backend = use_backend(cfg.kernels.backend)  # native requested but not built: a UserError here
-    use_formulation(cfg.kernels.moments)  # an unknown formulation: a UserError here
+    task = checked_task(OmegaConf.to_container(cfg.task, resolve=True))
+    # native requested but not built, or an unknown choice: a UserError here
+    engine = Engine.resolve(cfg.kernels.backend, cfg.kernels.moments)
     make_propagator = instantiate(cfg.propagation)
     check = getattr(make_propagator.func, "check_settings", None)
     if check is not None:  # e.g. an unknown propagation.sampling: a UserError here, not at the first search
         check(**make_propagator.keywords)
-    _check_dropout(cfg)
+    check_dropout(cfg)
     make_propagator = _with_search_cost(make_propagator, task, cfg)
     make_propagator = _with_kinematics(make_propagator, task, cfg)
+    make_propagator = functools.partial(make_propagator, engine=engine)
     parts = Parts(
         seed=int(cfg.seed),
         dtype=dtype,
@@ -163,11 +176,11 @@ def build(cfg: DictConfig) -> Parts:
         start=initial_start(task, int(cfg.seed), dtype).to(device=device),
         model=instantiate_checked(cfg.model),
         make_propagator=make_propagator,
-        search=instantiate_checked(cfg.optimizer),
+        search=build_search(cfg.optimizer),
         make_policy=instantiate(cfg.policy),
-        kernel_backend=kernel_backend,
+        engine=engine,
     )
-    _check_lr_scales(parts)
+    check_lr_scales(parts.search, parts.initial_policy)
     return parts
 
 
@@ -209,30 +222,6 @@ def _with_kinematics(make_propagator: PropagatorFactory, task: Task, cfg: DictCo
         raise UserError(f"propagation.integration=speed, but task {task.name} declares no kinematics: add "
                         "task.kinematics (positions, velocities) or set propagation.integration=delta")
     return functools.partial(make_propagator, kinematics=task.kinematics)
-
-
-def _check_lr_scales(parts: Parts) -> None:
-    """``optimizer.lr_scales`` must name parts of the configured policy's ψ: a UserError otherwise."""
-    scales = getattr(parts.search, "lr_scales", None)
-    if not scales:
-        return
-    named = dict(parts.initial_policy().named_parameters())
-    try:
-        parts.search.param_groups(named, 1.0)
-    except ValueError as err:
-        raise UserError(str(err)) from None
-
-
-def _check_dropout(cfg: DictConfig) -> None:
-    """Policy dropout needs particles and a policy that can drop its basis functions: a UserError otherwise."""
-    if float(cfg.optimizer.get("dropout", 0.0) or 0.0) == 0.0:
-        return
-    if not str(cfg.propagation._target_).endswith("Particles"):
-        raise UserError("optimizer.dropout > 0 needs propagation=particles (moment matching has no dropout): "
-                        "set optimizer.dropout=0 or propagation=particles")
-    if not str(cfg.policy._target_).endswith("rbf_network_policy"):
-        raise UserError("optimizer.dropout > 0 needs policy=rbf_network (the only policy with dropout): "
-                        "set policy=rbf_network or optimizer.dropout=0")
 
 
 def transfer_plan(cfg: DictConfig, parts: Parts) -> TransferPlan:

@@ -113,6 +113,14 @@ def load_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
     return state
 
 
+def run_checkpoint(run_dir: str | os.PathLike, checkpoint: str | os.PathLike | None = None) -> dict[str, Any]:
+    """The checkpoint a run directory is read back from: its newest, or ``checkpoint``; one-line error if it is none.
+
+    The run's configuration in it (``"config"``) is as the run stored it; :func:`qtl.runs.read_run` migrates it.
+    """
+    return load_checkpoint(latest_checkpoint(run_dir) if checkpoint is None else checkpoint)
+
+
 def _first_sentence(err: Exception) -> str:
     """The first sentence of an error's message, on one line (torch's load errors run over many lines)."""
     lines = str(err).strip().splitlines()

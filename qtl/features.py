@@ -15,8 +15,8 @@ import torch
 from torch import Tensor
 
 from qtl.gaussian import Gaussian, MomentMatch, batch_matmul, full_batch, identity, symmetrize
-from qtl.kernels.formulation import fused, native
-from qtl.kernels.native import trig_moments as native_trig
+from qtl.kernels.engine import DEFAULT_ENGINE, Engine
+from qtl.kernels.native import trig as native_trig
 
 
 @dataclass(frozen=True)
@@ -171,15 +171,16 @@ def reference_trig_moments(mean: Tensor, cov: Tensor) -> tuple[Tensor, Tensor, T
     return out_mean, symmetrize(out_cov), gain
 
 
-def trig_moments(mean: Tensor, cov: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+def trig_moments(mean: Tensor, cov: Tensor, engine: Engine = DEFAULT_ENGINE) -> tuple[Tensor, Tensor, Tensor]:
     """Exact moments of (sin φ_1, cos φ_1, …, sin φ_K, cos φ_K) for φ ~ N(mean, cov).
 
     ``mean`` `... x K`, ``cov`` `... x K x K`. Returns the mean `... x 2K`, the covariance
     `... x 2K x 2K` and the expected Jacobian transposed `... x K x 2K` (Σ⁻¹ cov[φ, ·]).
     E[sin φ] = exp(−σ²/2) sin μ; the cross moments use E[cos(φ_i ± φ_j)], written with
-    expm1 so that a vanishing covariance gives an exactly vanishing output covariance.
+    expm1 so that a vanishing covariance gives an exactly vanishing output covariance. ``engine``: the
+    reference or the fused formulation (:class:`qtl.kernels.engine.Engine`).
     """
-    if not fused():
+    if not engine.fused:
         return reference_trig_moments(mean, cov)
     num = mean.shape[-1]
     trig_mean, factors, angles = trig_terms(trig_stats(mean, cov, trig_map(num, mean.dtype, mean.device)), num)
@@ -253,11 +254,11 @@ class AngleFeatures:
         trig = torch.stack([angles.sin(), angles.cos()], dim=-1).flatten(-2)
         return torch.cat([x[..., list(self.other_dims)], trig], dim=-1)
 
-    def moments(self, state: Gaussian) -> MomentMatch:
-        """Exact mean, covariance and input–output covariance of y for x ~ N(μ, Σ) (PILCO gTrig)."""
+    def moments(self, state: Gaussian, engine: Engine = DEFAULT_ENGINE) -> MomentMatch:
+        """Exact mean, covariance and input–output covariance of y for x ~ N(μ, Σ) (PILCO gTrig), by ``engine``."""
         if state.dim != self.state_dim:
             raise ValueError(f"expected a {self.state_dim}-D state, got {state.dim}-D")
-        if not fused():
+        if not engine.fused:
             return self._reference_moments(state.expand())
         state = full_batch(state)
         mean, cov = state.mean, state.cov
@@ -265,7 +266,7 @@ class AngleFeatures:
             gain = identity(self.state_dim, mean.dtype, mean.device).expand(*cov.shape)
             return MomentMatch(mean=mean, cov=cov, cross_cov=cov, gain=gain)
 
-        if native() and native_trig.applicable(mean, cov):  # the same maths, one compiled call each way
+        if engine.native and native_trig.applicable(mean, cov):  # the same maths, one compiled call each way
             out_mean, out_cov, cross_cov, gain = native_trig.angle_feature_moments(mean, cov, self.angle_dims)
             return MomentMatch(mean=out_mean, cov=out_cov, cross_cov=cross_cov, gain=gain)
         layout = _layout(self.state_dim, self.angle_dims, mean.dtype, mean.device)

@@ -21,10 +21,9 @@ from tqdm.contrib.logging import logging_redirect_tqdm
 from qtl import health
 from qtl.build import build, transfer_plan
 from qtl.checkpoint import (
-    latest_checkpoint,
-    load_checkpoint,
     prune_checkpoints,
     refuse_existing_run,
+    run_checkpoint,
     save_checkpoint,
     set_rng_state,
 )
@@ -256,7 +255,7 @@ def predicted_return(
 def _resume_point(output_dir: Path, resume: bool) -> dict[str, Any] | None:
     """The last checkpoint to continue from, or None for a fresh run (refused where a run already lies)."""
     if resume:
-        return load_checkpoint(latest_checkpoint(output_dir))
+        return run_checkpoint(output_dir)
     refuse_existing_run(output_dir)
     return None
 

@@ -17,6 +17,7 @@ from torch import Tensor
 
 from qtl.features import AngleFeatures
 from qtl.gaussian import Gaussian
+from qtl.kernels.engine import DEFAULT_ENGINE, Engine
 
 # Eigenvalues of W below this fraction of the largest are treated as zero (W is PSD).
 WEIGHT_RANK_TOL = 1e-12
@@ -115,13 +116,13 @@ class ExpectedSaturatingReward:
         half_logdet = torch.diagonal(chol, dim1=-2, dim2=-1).log().sum(-1)
         return torch.exp(-half_logdet - 0.5 * white.square().sum(-1))
 
-    def expected(self, state: Gaussian) -> Tensor:
+    def expected(self, state: Gaussian, engine: Engine = DEFAULT_ENGINE) -> Tensor:
         """E[r(x)] for a raw Gaussian state `... x D` → `...` (Eq. 13).
 
         Exact when there are no angle dimensions; otherwise, as PILCO, the exact expectation
-        under the moment-matched Gaussian of the augmented state y.
+        under the moment-matched Gaussian of the augmented state y (its moments by ``engine``).
         """
-        return self.expected_augmented(self.features.moments(state).output)
+        return self.expected_augmented(self.features.moments(state, engine).output)
 
 
 class RewardMixture:
@@ -151,9 +152,9 @@ class RewardMixture:
         """Reward of raw states `... x D`: `...`."""
         return sum(w * part(x) for w, part in zip(self.weights, self.parts, strict=True))
 
-    def expected(self, state: Gaussian) -> Tensor:
+    def expected(self, state: Gaussian, engine: Engine = DEFAULT_ENGINE) -> Tensor:
         """E[r(x)] for a raw Gaussian state `... x D` → `...`: the weighted sum of the parts' (Eq. 13)."""
-        return sum(w * part.expected(state) for w, part in zip(self.weights, self.parts, strict=True))
+        return sum(w * part.expected(state, engine) for w, part in zip(self.weights, self.parts, strict=True))
 
 
 class AngleDistanceReward:
@@ -208,7 +209,7 @@ class AngleDistanceReward:
         diff = torch.where(self.is_angle.to(x.device), angular, diff)
         return torch.exp(-0.5 * (diff * self.inv_widths.to(x)).square().sum(-1))
 
-    def expected(self, state: Gaussian) -> Tensor:
+    def expected(self, state: Gaussian, engine: Engine = DEFAULT_ENGINE) -> Tensor:
         """No Gaussian expectation: a UserError-worthy misuse, raised as ValueError."""
         raise ValueError("an angle-distance search cost has no Gaussian expectation: use propagation.expected_reward="
                          "false (score the drawn states)")

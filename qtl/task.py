@@ -63,60 +63,37 @@ class Task:
     kinematics: Kinematics | None = None  # positions, their velocities and T (particles' speed integration)
 
     @classmethod
-    def from_config(cls, cfg: Mapping[str, Any]) -> Task:
-        """Build and check a task from its config node (``task``); makes one env to read its spaces."""
+    def from_config(cls, cfg: Mapping[str, Any], env: gymnasium.Env | None = None) -> Task:
+        """Build a task from its config node (``task``), checked by ``qtl.config.validate.checked_task`` (not here).
+
+        ``env``: an env of the task to read its spaces and defaults from (None: one is made and closed here).
+        """
         env_cfg = dict(cfg["env"])
-        env_id = env_cfg.pop("id", None)
-        if not env_id:
-            raise TaskError("task.env.id is missing: name a registered gymnasium env id")
+        env_id = env_cfg.pop("id")
         horizon = int(cfg["horizon"])
-        if horizon <= 0:
-            raise TaskError(f"task.horizon must be a positive number of steps, got {horizon}")
-        action_repeat = _action_repeat(cfg)
-        success = cfg["success"]
-        if int(success["last_steps"]) > horizon:
-            raise TaskError(
-                f"task.success.last_steps={success['last_steps']} is longer than task.horizon={horizon}: "
-                f"set task.success.last_steps to at most {horizon}"
-            )
-        env_cfg = _with_horizon(env_id, env_cfg, horizon, action_repeat)
+        action_repeat = int(cfg.get("action_repeat", 1))
+        env_cfg = env_kwargs(env_id, env_cfg, horizon, action_repeat)
+        made = gymnasium.make(env_id, **env_cfg) if env is None else None
+        opened = env if made is None else made
         try:
-            env = gymnasium.make(env_id, **env_cfg)
-        except gymnasium.error.Error as err:
-            raise TaskError(f"cannot make task.env.id={env_id!r}: {err}") from err
-        except (TypeError, ValueError) as err:
-            raise TaskError(f"bad constructor kwargs for {env_id!r} under task.env: {err}") from err
-        try:
-            obs_space, act_space = env.observation_space, env.action_space
-            _check_spaces(env_id, obs_space, act_space)
-            state_dim, action_dim = obs_space.shape[0], act_space.shape[0]
-            low, high = act_space.low.astype(float), act_space.high.astype(float)
-            angle_dims = tuple(int(a) for a in cfg.get("angle_dims", ()))
-            if any(not 0 <= a < state_dim for a in angle_dims) or len(set(angle_dims)) != len(angle_dims):
-                raise TaskError(f"task.angle_dims {list(angle_dims)} must be distinct indices below {state_dim}")
-            start_mean, start_std = _start_distribution(cfg.get("start"), env.unwrapped, state_dim)
-            reward = _reward(cfg.get("reward"), env.unwrapped, env_id, state_dim)
-            state_names = _state_names(cfg.get("state_names"), env.unwrapped, state_dim)
-            kinematics = _kinematics(cfg.get("kinematics"), env.unwrapped, state_dim, action_repeat)
+            state_dim, action_dim = opened.observation_space.shape[0], opened.action_space.shape[0]
+            low, high = opened.action_space.low.astype(float), opened.action_space.high.astype(float)
+            start_mean, start_std = _start_distribution(cfg.get("start"), opened.unwrapped, state_dim)
+            reward = _reward(cfg.get("reward"), opened.unwrapped, state_dim)
+            state_names = _state_names(cfg.get("state_names"), opened.unwrapped, state_dim)
+            kinematics = _kinematics(cfg.get("kinematics"), opened.unwrapped, action_repeat)
         finally:
-            env.close()
-        if float(success["threshold"]) <= 0 or not 1 <= int(success["last_steps"]) <= horizon:
-            raise TaskError(
-                f"task.success needs threshold > 0 and 1 <= last_steps <= horizon ({horizon}), got {dict(success)}"
-            )
-        start_min_std = float((cfg.get("start") or {}).get("min_std", DEFAULT_START_MIN_STD))
-        if not (math.isfinite(start_min_std) and start_min_std > 0):
-            raise TaskError(f"task.start.min_std must be a positive std, got {start_min_std}")
+            if made is not None:
+                made.close()
+        success = cfg["success"]
         reset_options = cfg.get("reset_options")
-        if reset_options is not None and not isinstance(reset_options, Mapping):
-            raise TaskError(f"task.reset_options must be a mapping (the env's reset options), got {reset_options!r}")
         return cls(
             name=str(cfg["name"]),
             family=str(cfg.get("family") or env_id),
             env_id=env_id,
             env_kwargs=env_cfg,
             horizon=horizon,
-            angle_dims=angle_dims,
+            angle_dims=tuple(int(a) for a in cfg.get("angle_dims", ())),
             state_dim=state_dim,
             state_names=state_names,
             action_dim=action_dim,
@@ -130,9 +107,9 @@ class Task:
             action_repeat=action_repeat,
             action_center=None if (low == -high).all() else (low + high) / 2,
             start_estimated=start_mean is None,
-            start_min_std=start_min_std,
+            start_min_std=float((cfg.get("start") or {}).get("min_std", DEFAULT_START_MIN_STD)),
             reset_options=None if reset_options is None else dict(reset_options),
-            search_cost=_search_cost(cfg.get("search_reward"), state_dim),
+            search_cost=_search_cost(cfg.get("search_reward")),
             search_cost_angles=_search_cost_angles(cfg.get("search_reward")),
             kinematics=kinematics,
         )
@@ -227,10 +204,10 @@ def env_settings(cfg: Mapping[str, Any]) -> dict[str, Any]:
     env_id = env_cfg.pop("id", None)
     if not env_id:
         raise TaskError("task.env.id is missing: name a registered gymnasium env id")
-    action_repeat = _action_repeat(cfg)
+    action_repeat = action_repeat_of(cfg)
     params = constructor_parameters(env_id) or {}
     defaults = {n: p.default for n, p in params.items() if p.default is not inspect.Parameter.empty}
-    settings = {"id": env_id, **defaults, **_with_horizon(env_id, env_cfg, int(cfg["horizon"]), action_repeat)}
+    settings = {"id": env_id, **defaults, **env_kwargs(env_id, env_cfg, int(cfg["horizon"]), action_repeat)}
     if action_repeat != 1:  # a dotted key: no constructor kwarg (an env's own ``action_repeat``) can clash with it
         settings["task.action_repeat"] = action_repeat
     return {key: _plain(value) for key, value in settings.items()}
@@ -262,7 +239,7 @@ def _plain(value: Any) -> Any:
     return [_plain(v) for v in value] if isinstance(value, (tuple, list)) else value
 
 
-def _with_horizon(env_id: str, env_cfg: dict[str, Any], horizon: int, action_repeat: int = 1) -> dict[str, Any]:
+def env_kwargs(env_id: str, env_cfg: dict[str, Any], horizon: int, action_repeat: int = 1) -> dict[str, Any]:
     """``env_cfg`` plus the one horizon: the env's ``horizon`` kwarg if it has one, else gymnasium's time limit.
 
     The learner's ``horizon`` steps are ``horizon × action_repeat`` steps of the env.
@@ -278,7 +255,7 @@ def _with_horizon(env_id: str, env_cfg: dict[str, Any], horizon: int, action_rep
     return {**env_cfg, "max_episode_steps": horizon * action_repeat}
 
 
-def _action_repeat(cfg: Mapping[str, Any]) -> int:
+def action_repeat_of(cfg: Mapping[str, Any]) -> int:
     """``task.action_repeat`` (default 1), checked: a whole number of env steps >= 1."""
     repeat = cfg.get("action_repeat", 1)
     if isinstance(repeat, bool) or not isinstance(repeat, (int, np.integer)) or repeat < 1:
@@ -288,48 +265,11 @@ def _action_repeat(cfg: Mapping[str, Any]) -> int:
     return int(repeat)
 
 
-FLATTEN_HINT = (
-    "flatten it in your own env registration (gymnasium.wrappers.FlattenObservation for observations) "
-    "or give a 1-D Box"
-)
-
-
-def _check_spaces(env_id: str, obs_space: gymnasium.Space, act_space: gymnasium.Space) -> None:
-    """Refuse, in one line that says why and what to do, spaces qtl cannot learn with: 1-D Box spaces only."""
-    spaces = gymnasium.spaces
-    for what, space in (("action", act_space), ("observation", obs_space)):
-        if isinstance(space, (spaces.Dict, spaces.Tuple)):
-            raise TaskError(f"{env_id} has a {type(space).__name__} {what} space {space}: {FLATTEN_HINT}")
-    if isinstance(act_space, (spaces.Discrete, spaces.MultiDiscrete, spaces.MultiBinary)) or (
-        isinstance(act_space, spaces.Box) and not np.issubdtype(act_space.dtype, np.floating)
-    ):
-        raise TaskError(
-            f"{env_id} has the action space {act_space}: qtl needs continuous actions (a 1-D Box): "
-            "PILCO's policy is a continuous map"
-        )
-    if isinstance(obs_space, spaces.Box) and (len(obs_space.shape) > 1 or obs_space.dtype == np.uint8):
-        raise TaskError(
-            f"{env_id} observes images ({obs_space}): pixels are not states; qtl models states with a GP: "
-            "give the env a 1-D Box observation of its state"
-        )
-    for what, space in (("action", act_space), ("observation", obs_space)):
-        if not isinstance(space, spaces.Box) or len(space.shape) != 1:
-            raise TaskError(f"{env_id} must have a 1-D Box {what} space, it has {space}")
-    low, high = act_space.low.astype(float), act_space.high.astype(float)
-    if not (np.isfinite(low).all() and np.isfinite(high).all() and (high > low).all()):
-        raise TaskError(
-            f"{env_id} must have finite action bounds low < high, it has [{low}, {high}]: "
-            "register the env with the bounded action range it accepts"
-        )
-
-
 def _state_names(names: Sequence[str] | None, env: gymnasium.Env, state_dim: int) -> tuple[str, ...]:
     """``task.state_names``, else the env's ``state_names``, else ``x[0]``, ``x[1]``, ...: `D`."""
     names = getattr(env, "state_names", None) if names is None else names
     if names is None:
         return tuple(f"x[{d}]" for d in range(state_dim))
-    if len(names) != state_dim:
-        raise TaskError(f"task.state_names names {len(names)} dimensions, the state has {state_dim}: {list(names)}")
     return tuple(str(n) for n in names)
 
 
@@ -338,8 +278,7 @@ def _start_distribution(
 ) -> tuple[np.ndarray | None, np.ndarray | None]:
     """μ_0 `D`, σ_0 `D` from ``task.start``, else the env's ``start_mean``/``start_std``; (None, None): estimate them.
 
-    One of mean and std given without the other is completed by the env's; with neither from
-    either source, the loop estimates both from data; with only one, the task is refused.
+    One of mean and std given without the other is completed by the env's.
     """
     mean = None if cfg is None else cfg.get("mean")
     std = None if cfg is None else cfg.get("std")
@@ -347,82 +286,51 @@ def _start_distribution(
     std = getattr(env, "start_std", None) if std is None else std
     if mean is None and std is None:
         return None, None
-    if mean is None or std is None:
-        given, missing = ("mean", "std") if std is None else ("std", "mean")
-        raise TaskError(f"task.start.{given} is set but the env exposes no start_{missing}: set task.start.{missing} "
-                        f"too, or neither (the start distribution is then estimated from the episodes)")
     mean = np.broadcast_to(np.asarray(mean, dtype=float), (state_dim,)).copy()
     std = np.broadcast_to(np.asarray(std, dtype=float), (state_dim,)).copy()
-    if not (np.isfinite(mean).all() and np.isfinite(std).all() and (std >= 0).all()):
-        raise TaskError(f"start distribution must be finite with std >= 0, got mean {mean}, std {std}")
     return mean, std
 
 
-def _reward(cfg: Mapping[str, Any] | None, env: gymnasium.Env, env_id: str, state_dim: int) -> SaturatingReward:
-    if cfg is not None:
-        try:
-            return SaturatingReward(
-                state_dim=state_dim,
-                angle_dims=tuple(cfg["angle_dims"]),
-                target=_floats(cfg["target"]),
-                weight=[_floats(row) for row in cfg["weight"]],
-                width=float(cfg["width"]),
-            )
-        except (KeyError, ValueError) as err:
-            raise TaskError(f"task.reward is not a valid saturating reward: {err}") from err
-    spec = getattr(env, "reward_spec", None)
-    if spec is None:
-        raise TaskError(f"{env_id} has no reward_spec: describe its reward under task.reward")
-    if spec.state_dim != state_dim:
-        raise TaskError(f"{env_id}.reward_spec is for {spec.state_dim}-D states, observations are {state_dim}-D")
-    return spec
+def _reward(cfg: Mapping[str, Any] | None, env: gymnasium.Env, state_dim: int) -> SaturatingReward:
+    """``task.reward`` (integers read as floats), else the env's ``reward_spec``."""
+    if cfg is None:
+        return env.reward_spec
+    return SaturatingReward(
+        state_dim=state_dim,
+        angle_dims=tuple(cfg["angle_dims"]),
+        target=_floats(cfg["target"]),
+        weight=[_floats(row) for row in cfg["weight"]],
+        width=float(cfg["width"]),
+    )
 
 
 def _floats(values: Sequence[Any]) -> list[float]:
     return [float(v) for v in values]
 
 
-def _search_cost(cfg: Mapping[str, Any] | None, state_dim: int) -> tuple[np.ndarray, np.ndarray] | None:
-    """``task.search_reward`` as (target, widths) `D` each (null entries: width inf, left out), checked."""
+def _search_cost(cfg: Mapping[str, Any] | None) -> tuple[np.ndarray, np.ndarray] | None:
+    """``task.search_reward`` as (target, widths) `D` each (null entries: width inf, left out)."""
     if cfg is None:
         return None
     target, widths = list(cfg.get("target") or []), list(cfg.get("widths") or [])
-    if len(target) != state_dim or len(widths) != state_dim:
-        raise TaskError(f"task.search_reward needs target and widths of {state_dim} entries each (null: left out), "
-                        f"got {len(target)} and {len(widths)}")
     used = [w is not None for w in widths]
-    if not any(used) or any(u and (t is None or float(w) <= 0 or not math.isfinite(float(w)))
-                            for u, t, w in zip(used, target, widths, strict=True)):
-        raise TaskError(f"task.search_reward needs a finite target and a finite width > 0 on every dimension it "
-                        f"uses, and at least one: got target {target}, widths {widths}")
     return (np.array([float(t) if u else 0.0 for u, t in zip(used, target, strict=True)]),
             np.array([float(w) if u else math.inf for u, w in zip(used, widths, strict=True)]))
 
 
 def _search_cost_angles(cfg: Mapping[str, Any] | None) -> str:
-    """``task.search_reward.angles`` checked: ``wrapped`` (the default) or ``absolute``."""
-    angles = "wrapped" if cfg is None else str(cfg.get("angles") or "wrapped")
-    if angles not in SEARCH_COST_ANGLES:
-        raise TaskError(f"task.search_reward.angles must be one of {', '.join(SEARCH_COST_ANGLES)}, got {angles!r}")
-    return angles
+    """``task.search_reward.angles``: ``wrapped`` (the default) or ``absolute``."""
+    return "wrapped" if cfg is None else str(cfg.get("angles") or "wrapped")
 
 
-def _kinematics(cfg: Mapping[str, Any] | None, env: gymnasium.Env, state_dim: int, action_repeat: int
-                ) -> Kinematics | None:
-    """``task.kinematics`` checked, its period T the given one or the env's ``dt`` × ``action_repeat``."""
+def _kinematics(cfg: Mapping[str, Any] | None, env: gymnasium.Env, action_repeat: int) -> Kinematics | None:
+    """``task.kinematics``, its period T the given one or the env's ``dt`` × ``action_repeat``."""
     if cfg is None:
         return None
     positions = tuple(int(p) for p in cfg.get("positions") or ())
     velocities = tuple(int(v) for v in cfg.get("velocities") or ())
     period = cfg.get("period")
-    if period is None:
-        dt = getattr(env, "dt", None)
-        if dt is None:
-            raise TaskError("task.kinematics.period is not set and the env has no dt: set task.kinematics.period "
-                            "to the control period in seconds")
-        period = float(dt) * action_repeat
-    check_kinematics(state_dim, positions, velocities, float(period))
-    return Kinematics(positions, velocities, float(period))
+    return Kinematics(positions, velocities, float(env.dt) * action_repeat if period is None else float(period))
 
 
 def check_kinematics(state_dim: int, positions: Sequence[int], velocities: Sequence[int], period: float) -> None:

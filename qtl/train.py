@@ -23,11 +23,12 @@ from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from qtl.build import DTYPES
-from qtl.checkpoint import latest_checkpoint, load_checkpoint, refuse_existing_run, run_lock
-from qtl.config import TrainConfig, check_budget, check_group_keys, register_configs, show_progress, typed_groups
+from qtl.checkpoint import refuse_existing_run, run_lock
+from qtl.config import check_budget, check_group_keys, register_configs, show_progress
 from qtl.errors import CheckpointError, UserError
 from qtl.loop import RunResult, run
 from qtl.metrics import first_success
+from qtl.runs import read_run
 from qtl.task import env_settings
 
 log = logging.getLogger(__name__)
@@ -40,15 +41,9 @@ HYDRA_DIR = ".hydra"  # the run's record of its configuration, as Hydra lays it 
 FULL_ERROR = "HYDRA_FULL_ERROR"  # Hydra's switch for full tracebacks; qtl-train honours it too
 
 
-def stored_config(checkpoint: dict) -> DictConfig:
-    """A checkpoint's run configuration, checked against (and completed by) the schema."""
-    stored = typed_groups(OmegaConf.create(checkpoint["config"]))
-    return OmegaConf.merge(OmegaConf.structured(TrainConfig), stored)
-
-
 def resume_config(run_dir: Path, overrides: list[str]) -> DictConfig:
     """The interrupted run's configuration, with the few keys a resume may change taken from ``overrides``."""
-    cfg = stored_config(load_checkpoint(latest_checkpoint(run_dir)))
+    cfg, _ = read_run(run_dir)
     changes = []
     for override in overrides:
         key = override.lstrip("+~").partition("=")[0]
@@ -87,11 +82,10 @@ def auto_resume(run_dir: Path, cfg: DictConfig) -> DictConfig:
     ``cfg``'s values.
     """
     try:
-        checkpoint = load_checkpoint(latest_checkpoint(run_dir))
+        stored, _ = read_run(run_dir)
     except CheckpointError:
         cfg.resume = None
         return cfg
-    stored = stored_config(checkpoint)
     mine, theirs = comparable(cfg), comparable(stored)
     if mine != theirs:
         differ = sorted(k for k in mine.keys() | theirs.keys() if mine.get(k) != theirs.get(k))
@@ -172,7 +166,21 @@ def one_line(err: BaseException) -> str:
     cause = err.__cause__
     if isinstance(cause, OmegaConfBaseException) and str(cause).strip():
         return f"{first.rstrip('.')}: {str(cause).splitlines()[0]}"
+    if first.endswith(":"):  # e.g. "... ValidationError raised while composing config:": the cause says what
+        return f"{first} {_key_and_reason(err)}".rstrip()
     return first
+
+
+def _key_and_reason(err: BaseException) -> str:
+    """``key: reason`` of the first OmegaConf error in ``err``'s chain (the reason alone without a key; else '')."""
+    seen = err.__cause__ or err.__context__
+    while seen is not None and not isinstance(seen, OmegaConfBaseException):
+        seen = seen.__cause__ or seen.__context__
+    if seen is None:
+        return ""
+    reason = next((line.strip() for line in str(seen).splitlines() if line.strip()), type(seen).__name__)
+    key = getattr(seen, "full_key", None)
+    return f"{key}: {reason}" if key and str(key) not in reason else reason
 
 
 def _log_to_files(message: str) -> None:

@@ -27,7 +27,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_rollout
 import benchlib
 
-from qtl.kernels import backend, weighted_exp_sum
+from qtl.kernels import Engine, weighted_exp_sum
 from qtl.kernels.native import build as native_build
 
 PAIRS = 10  # E(E+1)/2 for E = 4 outputs
@@ -67,18 +67,19 @@ def bench_exp_sum(n: int, restarts: int, repeats: int) -> dict:
     a, b, w = problem(n, restarts)
     a_req, b_req = a.clone().requires_grad_(), b.clone().requires_grad_()
 
-    def forward() -> torch.Tensor:
-        return weighted_exp_sum(a, b, w)
-
-    def forward_backward() -> tuple[torch.Tensor, ...]:
-        return torch.autograd.grad(weighted_exp_sum(a_req, b_req, w).sum(), (a_req, b_req))
-
     row: dict = {"n": n, "restarts": restarts, "pairs": PAIRS, "k": FEATURES}
     for name in BACKENDS:
-        with backend(name):
-            row[f"{name}_forward_ms"] = 1e3 * median_time(forward, repeats)
-            row[f"{name}_forward_backward_ms"] = 1e3 * median_time(forward_backward, repeats)
-            row[f"{name}_value"] = forward()
+        engine = Engine.resolve(name, "reference")
+
+        def forward(engine: Engine = engine) -> torch.Tensor:
+            return weighted_exp_sum(a, b, w, engine=engine)
+
+        def forward_backward(engine: Engine = engine) -> tuple[torch.Tensor, ...]:
+            return torch.autograd.grad(weighted_exp_sum(a_req, b_req, w, engine=engine).sum(), (a_req, b_req))
+
+        row[f"{name}_forward_ms"] = 1e3 * median_time(forward, repeats)
+        row[f"{name}_forward_backward_ms"] = 1e3 * median_time(forward_backward, repeats)
+        row[f"{name}_value"] = forward()
     row["max_rel_diff"] = float(((row["native_value"] - row["torch_value"]).abs() / row["torch_value"].abs()).max())
     del row["native_value"], row["torch_value"]
     for what in ("forward", "forward_backward"):
@@ -88,12 +89,11 @@ def bench_exp_sum(n: int, restarts: int, repeats: int) -> dict:
 
 def bench_rollout_gradient(repeats: int) -> dict:
     """One moment-matching rollout (H = 50) plus the policy gradient at n = ROLLOUT_N, both backends."""
-    propagator, start = bench_rollout.make_case(ROLLOUT_N, torch.float64)
     row: dict = {"n": ROLLOUT_N, "horizon": bench_rollout.HORIZON}
     for name in BACKENDS:
-        with backend(name):
-            row[f"{name}_s"] = median_time(lambda: bench_rollout.rollout_and_gradient(propagator, start), repeats)
-            row[f"{name}_value"] = bench_rollout.rollout_and_gradient(propagator, start)
+        propagator, start = bench_rollout.make_case(ROLLOUT_N, torch.float64, Engine.resolve(name, "reference"))
+        row[f"{name}_s"] = median_time(lambda: bench_rollout.rollout_and_gradient(propagator, start), repeats)  # noqa: B023
+        row[f"{name}_value"] = bench_rollout.rollout_and_gradient(propagator, start)
     row["speedup"] = row["torch_s"] / row["native_s"]
     return row
 

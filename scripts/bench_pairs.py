@@ -3,7 +3,7 @@
 For each full-scale preset's task: the model the sweep fits just past ``model.sparse_above`` (the sparse
 GP, m = 300, as `bench_scale.py`), then one policy-search round (rollout + gradient of the optimizer's R
 restarts at once) timed alternately with the compiled moments' lower pair sums (the default) and with
-every pair's full n x n sum (`qtl.kernels.native.se_moments.full_pairs`), and the values and gradients
+every pair's full n x n sum (``Engine.lower_pairs=False``), and the values and gradients
 of both compared. Of the E(E+1)/2 output pairs, E are a = b pairs whose S_aa is symmetric, so the lower
 sums skip about E/2 of the pair sums' entries: ≤ 20 % for the cart-pole (E = 4), ≤ 33 % for the
 mountain car (E = 2), ≤ 8 % for the aircraft (E = 12). Writes ``docs/bench/pairs.json`` and its section
@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
+import functools
 import os
 import statistics
 import sys
@@ -30,8 +32,6 @@ import benchlib
 from bench_policy_search import SEARCH_EPISODE, batched_round
 from bench_scale import compose_stage, stage_model
 
-from qtl.kernels.formulation import formulation
-from qtl.kernels.native import se_moments
 from qtl.policies import batched_policy, psi_names, set_psi, stack_psi
 from qtl.seeding import SEARCH_STREAM, torch_generator
 
@@ -51,6 +51,13 @@ def round_outputs(parts: Any, model: Any, policy: Any, seed: int) -> tuple[torch
     return value.detach(), list(grads)
 
 
+def with_engine(parts: Any, **changes: Any) -> Any:
+    """``parts`` whose engine (and so every propagator it makes) has ``changes``."""
+    engine = parts.engine.replace(**changes)
+    return dataclasses.replace(parts, engine=engine, make_propagator=functools.partial(parts.make_propagator,
+                                                                                       engine=engine))
+
+
 def max_relative(got: torch.Tensor, want: torch.Tensor) -> float:
     """max |got − want| / max |want|."""
     return float((got - want).abs().max() / want.abs().max())
@@ -61,21 +68,21 @@ def measure(experiment: str, repeats: int, seed: int) -> dict[str, Any]:
     cfg = compose_stage(PRESETS[experiment], [])
     parts, model, n, fit_s = stage_model(cfg, seed)
     policy = parts.initial_policy()
+    full_parts = with_engine(parts, lower_pairs=False)
     round_, restarts = batched_round(parts, model, policy, seed)
+    rounds = {"full": batched_round(full_parts, model, policy, seed)[0], "lower": round_}
     times: dict[str, list[float]] = {"full": [], "lower": [], "full_cpu": [], "lower_cpu": []}
     for index in range(repeats + 1):  # the first of each is a warm-up
         for name in ("full", "lower"):
-            with se_moments.full_pairs() if name == "full" else contextlib.nullcontext():
-                tic, cpu = time.perf_counter(), time.process_time()
-                round_()
-                if index:
-                    times[name].append(time.perf_counter() - tic)
-                    times[f"{name}_cpu"].append(time.process_time() - cpu)
-    with se_moments.full_pairs():
-        value_full, grads_full = round_outputs(parts, model, policy, seed)
+            tic, cpu = time.perf_counter(), time.process_time()
+            rounds[name]()
+            if index:
+                times[name].append(time.perf_counter() - tic)
+                times[f"{name}_cpu"].append(time.process_time() - cpu)
+    value_full, grads_full = round_outputs(full_parts, model, policy, seed)
     value_lower, grads_lower = round_outputs(parts, model, policy, seed)
-    with formulation("fused"):  # the torch twin: how far two correct evaluations of this round differ
-        value_torch, grads_torch = round_outputs(parts, model, policy, seed)
+    # the torch twin: how far two correct evaluations of this round differ
+    value_torch, grads_torch = round_outputs(with_engine(parts, moments="fused"), model, policy, seed)
     full_s, lower_s = statistics.median(times["full_cpu"]), statistics.median(times["lower_cpu"])
     outputs = int(parts.task.state_dim)
     return {"experiment": experiment, "task": parts.task.name, "outputs": outputs,
@@ -111,7 +118,7 @@ def markdown(rows: list[dict[str, Any]], info: dict[str, Any]) -> str:
         "",
         "One policy-search round (rollout + gradient of the R restarts at once) on each preset's model just past "
         "`model.sparse_above` (the sparse GP, m inducing inputs), timed alternately with every output pair's full "
-        "n x n exp sum (`se_moments.full_pairs()`, the form before) and with the a = b pairs' sums from their "
+        "n x n exp sum (`Engine(lower_pairs=False)`, the form before) and with the a = b pairs' sums from their "
         f"lower triangles (the default); medians of {info['repeats']} after a warm-up of this process's CPU time "
         "(one thread: the work, whatever else shares the cores; wall times in the JSON). Ratio = lower / full, "
         "measured in the same run. Max rel. diff of V and of ∂V/∂ψ: lower against full, and (for scale: two correct "

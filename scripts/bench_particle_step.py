@@ -6,7 +6,7 @@
 On the run's data (its latest checkpoint, or ``--checkpoint``), the model refitted with the run's settings
 and the run's policy with the recipe's starting dropout (``optimizer.dropout``), one search evaluation, a
 rollout of the task's horizon and its ∂V/∂ψ, is timed with ``RBFNetwork.forward`` by the plain autograd
-form (the old path), by the fused torch op and by its compiled twin (``qtl.policies.rbf_network.network_form``;
+form (the old path), by the fused torch op and by its compiled twin (``qtl.kernels.Engine.network``;
 the native one needs the build and ``kernels.moments=native``, else it is skipped), in alternation in this one
 process, after one warm-up each. Ratios of the medians against the plain form are the speed-ups; the forms'
 values of each round (the same dropout masks, particle noise and drawn functions) are checked equal first.
@@ -16,26 +16,21 @@ Writes JSON and the "particle_step" section of ``docs/benchmarks.md``.
 from __future__ import annotations
 
 import argparse
-import functools
 import statistics
 import sys
 import time
 from pathlib import Path
 
 import torch
-from omegaconf import OmegaConf
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import benchlib
-from probe_policy_search import refitted
+from probe_policy_search import loaded, refitted
 
-from qtl.checkpoint import latest_checkpoint, load_checkpoint
-from qtl.config import typed_groups
-from qtl.kernels.formulation import active_formulation
-from qtl.policies.rbf_network import network_form
+from qtl.checkpoint import latest_checkpoint
 from qtl.seeding import torch_generator
 
-# The network's forms, by ``network_form``: the plain autograd form (the old path), the fused op, its compiled twin.
+# The network's forms, by ``Engine.network``: the plain autograd form (the old path), the fused op, its compiled twin.
 FORMS = {"reference": "reference", "fused": "fused", "native": "auto"}
 # The two forms' values of one evaluation agree to this (relative): they differ in the order of operations,
 # which a 100-step closed loop amplifies, but not beyond this over one rollout.
@@ -58,29 +53,28 @@ def main() -> None:
     torch.set_num_threads(args.threads)
 
     checkpoint_path = args.checkpoint or latest_checkpoint(args.run_dir)
-    checkpoint = load_checkpoint(checkpoint_path)
-    cfg = typed_groups(OmegaConf.create(checkpoint["config"]))
+    run = loaded(args.run_dir, checkpoint_path, [])
+    cfg = run.config
     particle_run = cfg.propagation["_target_"].endswith("Particles")
     if not particle_run or not cfg.policy["_target_"].endswith("rbf_network_policy"):
         parser.error(f"{args.run_dir} is not a particle run with policy=rbf_network (e.g. recipe=mc_pilco)")
-    parts, data, model = refitted(checkpoint, [])
-    policy = parts.initial_policy()
-    policy.load_state_dict(checkpoint["policy"])
-    propagator = parts.make_propagator(model, policy, parts.reward, angle_dims=parts.task.angle_dims)
-    objective = functools.partial(propagator.expected_return, parts.start, parts.task.horizon)
+    data, model = refitted(run)
+    parts, policy = run.parts, run.policy()
+    forms = [form for form in FORMS if form != "native" or parts.engine.moments == "native"]
+    propagators = {form: parts.make_propagator(model, policy, parts.reward, angle_dims=parts.task.angle_dims,
+                                               engine=parts.engine.replace(network=FORMS[form])) for form in forms}
 
     def evaluate(form: str, seed: int) -> tuple[float, float]:
         """One evaluation (value and ∂V/∂ψ) under ``form``, with dropout masks from ``seed``: (value, seconds)."""
+        propagator = propagators[form]
         policy.set_dropout(cfg.optimizer.dropout, torch_generator(seed, 0, 0))
         propagator.calls = seed  # the evaluation number, which picks the draw of particle noise and functions
         policy.zero_grad()
         tic = time.perf_counter()
-        with network_form(FORMS[form]):
-            value = objective()
-            value.backward()
+        value = propagator.expected_return(parts.start, parts.task.horizon)
+        value.backward()
         return value.item(), time.perf_counter() - tic
 
-    forms = [form for form in FORMS if form != "native" or active_formulation() == "native"]
     times: dict[str, list[float]] = {form: [] for form in forms}
     values: dict[str, list[float]] = {form: [] for form in forms}
     for repeat in range(args.repeats + 1):  # the first round is the warm-up
@@ -100,7 +94,7 @@ def main() -> None:
         "horizon": parts.task.horizon,
         "num_basis": cfg.policy.num_basis,
         "dropout": cfg.optimizer.dropout,
-        "formulation": active_formulation(),
+        "formulation": parts.engine.moments,
         "times_s": times,
         "median_s": medians,
         "ratios": {form: medians[form] / medians["reference"] for form in forms},

@@ -32,6 +32,7 @@ from qtl.build import DTYPES
 from qtl.features import AngleFeatures
 from qtl.gaussian import Gaussian
 from qtl.kernels import moments as kernel_moments
+from qtl.kernels.engine import DEFAULT_ENGINE, Engine
 from qtl.models import DynamicsGP
 from qtl.policies import RBFPolicy, SquashedPolicy
 from qtl.propagation import MomentMatching
@@ -73,8 +74,8 @@ def cartpole_reward() -> ExpectedSaturatingReward:
     return ExpectedSaturatingReward.from_spec(spec)
 
 
-def make_case(n: int, dtype: torch.dtype) -> tuple[MomentMatching, Gaussian]:
-    """A GP on n synthetic cart-pole-like transitions, an RBF policy, and the start distribution."""
+def make_case(n: int, dtype: torch.dtype, engine: Engine = DEFAULT_ENGINE) -> tuple[MomentMatching, Gaussian]:
+    """A GP on n synthetic cart-pole-like transitions, an RBF policy, the start distribution; moments by ``engine``."""
     gen = torch.Generator().manual_seed(0)
     x = torch.randn(n, STATE_DIM, generator=gen, dtype=torch.float64) * torch.tensor([1.0, 2.0, 3.0, 4.0])
     u = ACTION_BOUND * (2 * torch.rand(n, 1, generator=gen, dtype=torch.float64) - 1)
@@ -82,7 +83,8 @@ def make_case(n: int, dtype: torch.dtype) -> tuple[MomentMatching, Gaussian]:
     delta = 0.1 * torch.stack([x[:, 1], torch.sin(x[:, 2]) + 0.05 * u[:, 0], x[:, 3], torch.cos(x[:, 2]) * x[:, 3]], -1)
     model = DynamicsGP(torch.cat([feats, u], -1), delta + 0.01 * torch.randn(n, STATE_DIM, generator=gen))
     policy = SquashedPolicy(RBFPolicy(feats.shape[-1], 1, NUM_BASIS, generator=gen), ACTION_BOUND).to(dtype)
-    propagator = MomentMatching(model.posterior_cache(), policy, cartpole_reward(), angle_dims=ANGLE_DIMS, dtype=dtype)
+    propagator = MomentMatching(model.posterior_cache(), policy, cartpole_reward(), angle_dims=ANGLE_DIMS, dtype=dtype,
+                                engine=engine)
     start = Gaussian(torch.zeros(STATE_DIM, dtype=dtype), 0.01 * torch.eye(STATE_DIM, dtype=dtype))
     return propagator, start
 
@@ -95,7 +97,8 @@ def rollout_and_gradient(propagator: MomentMatching, start: Gaussian) -> float:
     return float(value.detach())
 
 
-def dense_weighted_exp_sum(a: torch.Tensor, b: torch.Tensor, w: torch.Tensor, block_rows: int | None = None):
+def dense_weighted_exp_sum(a: torch.Tensor, b: torch.Tensor, w: torch.Tensor, block_rows: int | None = None,
+                           engine: Engine = DEFAULT_ENGINE) -> torch.Tensor:
     """Ablation: Σ W ∘ exp(A Bᵀ) as plain autograd ops on the whole `n x n` matrices."""
     return (w * torch.exp(a @ b.mT)).sum((-2, -1))
 

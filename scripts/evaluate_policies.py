@@ -24,14 +24,12 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from omegaconf import OmegaConf
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import envs  # noqa: E402,F401  (registers the qtl/ environments)
-from qtl.build import build  # noqa: E402
-from qtl.checkpoint import CHECKPOINT_DIR, episodes_done, latest_checkpoint, load_checkpoint  # noqa: E402
+from qtl.checkpoint import CHECKPOINT_DIR, episodes_done  # noqa: E402
 from qtl.episodes import run_episode  # noqa: E402
 from qtl.report.discover import Experiment, discover  # noqa: E402
 from qtl.report.final_policies import (  # noqa: E402
@@ -41,6 +39,7 @@ from qtl.report.final_policies import (  # noqa: E402
     read_final_policies,
 )
 from qtl.report.paths import recorded_path  # noqa: E402
+from qtl.runs import load_run  # noqa: E402
 from qtl.seeding import ENV_STREAM, derive_seed  # noqa: E402
 
 EVAL_SEED = 1_000_003  # the start states' seed: not a run seed of any sweep, so no start is a training episode's
@@ -62,24 +61,24 @@ class Evaluation:
 
 def evaluate_run(approach: str, label: str, seed: int, run_dir: Path, episodes: int, starts: int,
                  eval_seed: int) -> Evaluation:
-    """Run the policy of ``run_dir``'s newest checkpoint from ``starts`` start states on its own task."""
-    checkpoint = load_checkpoint(latest_checkpoint(run_dir))
-    if checkpoint["episode"] + 1 != episodes:
-        raise SystemExit(f"{run_dir}: its newest checkpoint is of episode {checkpoint['episode']}, its metrics.csv "
+    """Run the policy of ``run_dir``'s newest checkpoint from ``starts`` start states on its own task.
+
+    The run is rebuilt from its stored config as migrated (:func:`qtl.runs.load_run`): a key the run predates
+    takes the value the run ran with, not today's default.
+    """
+    run = load_run(run_dir, overrides=["device=cpu"])
+    if run.episode + 1 != episodes:
+        raise SystemExit(f"{run_dir}: its newest checkpoint is of episode {run.episode}, its metrics.csv "
                          f"has {episodes} episodes; resume the run (resume=auto) so that the two agree")
-    cfg = OmegaConf.create(checkpoint["config"])
-    cfg.device = "cpu"
-    parts = build(cfg)
-    policy = parts.initial_policy()
-    policy.load_state_dict(checkpoint["policy"])
-    actor = parts.actor(policy)
+    parts = run.parts
+    actor = parts.actor(run.policy())
     returns, successes = [], []
     with parts.task.make_env() as env, torch.no_grad():
         for k in range(starts):
             episode = run_episode(env, parts.task, actor, derive_seed(eval_seed, k, ENV_STREAM))
             returns.append(float(episode.rewards.sum()))
             successes.append(parts.task.succeeded(episode.states))
-    return Evaluation(approach, label, seed, int(checkpoint["episode"]), float(np.mean(successes)),
+    return Evaluation(approach, label, seed, run.episode, float(np.mean(successes)),
                       float(np.mean(returns)), returns)
 
 

@@ -23,49 +23,27 @@ from pathlib import Path
 
 import benchlib
 import torch
-from omegaconf import DictConfig, OmegaConf
 
-from qtl.build import Parts, build, transfer_plan
-from qtl.checkpoint import latest_checkpoint, load_checkpoint
-from qtl.config import GROUP_SCHEMAS, typed_groups
+from qtl.build import transfer_plan
 from qtl.data import TransitionDataset
 from qtl.episodes import run_episode
+from qtl.errors import UserError
 from qtl.loop import MODEL_STREAM
 from qtl.models import DynamicsGP
 from qtl.models.warm_start import PreviousFit
+from qtl.runs import LoadedRun, load_run
 from qtl.seeding import torch_generator
 
 EVALUATION_SEED = 100  # real episodes use env seeds 100, 101, ...: not the run's own
 
 
-def with_overrides(cfg: DictConfig, overrides: list[str]) -> DictConfig:
-    """The run's config with ``group=option`` (any config group's schema) and then ``key=value`` overrides.
-
-    A leading ``+`` is dropped (the typed groups hold every key); a key outside the config is refused, not ignored.
-    """
-    rest = []
-    for override in overrides:
-        override = override.removeprefix("+")  # Hydra's "add a key": the typed groups take it as a plain key
-        key, _, value = override.partition("=")
-        if key.split(".", 1)[0] not in cfg:
-            raise SystemExit(f"unknown override {override!r}: {key.split('.', 1)[0]!r} is not in the run's config")
-        if key in GROUP_SCHEMAS:  # `group=option` replaces the whole node, as on the CLI
-            if value not in GROUP_SCHEMAS[key]:
-                raise SystemExit(f"unknown {key}={value!r}: choose one of {sorted(GROUP_SCHEMAS[key])}")
-            cfg[key] = OmegaConf.structured(GROUP_SCHEMAS[key][value])
-        else:
-            rest.append(override)
-    return OmegaConf.merge(cfg, OmegaConf.from_dotlist(rest))
-
-
-def refitted(checkpoint: dict, overrides: list[str]) -> tuple[Parts, TransitionDataset, DynamicsGP]:
-    """The checkpoint's config with ``overrides`` built, its data, and the model the run's next episode would search
-    on (Algorithm 1, lines 12-13): θ_p fitted warm from the checkpoint's fit (``model.warm_start``) with the run's
-    own random stream and the transfer plan's cold start, then θ = the updating rule's θ_i from the checkpointed
-    rule state (Eqs. 6-12; θ_p itself for PILCO). Loads the run's source run, where it has one."""
-    cfg = with_overrides(typed_groups(OmegaConf.create(checkpoint["config"])), overrides)
-    parts = build(cfg)
-    data = TransitionDataset.from_state(checkpoint["dataset"], parts.task.angle_dims)
+def refitted(run: LoadedRun) -> tuple[TransitionDataset, DynamicsGP]:
+    """The run's data, and the model the run's next episode would search on (Algorithm 1, lines 12-13): θ_p fitted
+    warm from the checkpoint's fit (``model.warm_start``) with the run's own random stream and the transfer plan's
+    cold start, then θ = the updating rule's θ_i from the checkpointed rule state (Eqs. 6-12; θ_p itself for PILCO).
+    Loads the run's source run, where it has one."""
+    cfg, checkpoint, parts = run.config, run.checkpoint, run.parts
+    data = run.dataset()
     plan = transfer_plan(cfg, parts)
     if "transfer" in checkpoint:  # checkpoints of runs made before transfer existed are PILCO runs
         plan.load_state_dict(checkpoint["transfer"])
@@ -75,7 +53,15 @@ def refitted(checkpoint: dict, overrides: list[str]) -> tuple[Parts, TransitionD
     theta = plan.update(theta_p, len(data), plan.compliance(model))
     if theta is not theta_p:
         model.hyperparameters = theta
-    return parts, data, model
+    return data, model
+
+
+def loaded(run_dir: Path, checkpoint: Path | None, overrides: list[str]) -> LoadedRun:
+    """:func:`qtl.runs.load_run`, bad input (not a run, an unknown override) as a one-line exit."""
+    try:
+        return load_run(run_dir, checkpoint=checkpoint, overrides=overrides)
+    except UserError as err:
+        raise SystemExit(f"{run_dir}: {err}") from None
 
 
 def main() -> None:
@@ -89,12 +75,11 @@ def main() -> None:
     args, overrides = parser.parse_known_args()
     torch.set_num_threads(args.threads)
 
-    checkpoint = load_checkpoint(args.checkpoint or latest_checkpoint(args.run_dir))
-    parts, data, model = refitted(checkpoint, overrides)
+    run = loaded(args.run_dir, args.checkpoint, overrides)
+    data, model = refitted(run)
+    parts = run.parts
     task, start = parts.task, parts.start
-    policy = parts.initial_policy()
-    if not args.fresh:
-        policy.load_state_dict(checkpoint["policy"])
+    policy = parts.initial_policy() if args.fresh else run.policy()
     propagator = parts.make_propagator(model, policy, parts.reward, angle_dims=task.angle_dims)
     with torch.no_grad():
         before = float(propagator.expected_return(start, task.horizon))
@@ -110,7 +95,7 @@ def main() -> None:
         episode = run_episode(env, task, parts.actor(policy), EVALUATION_SEED + k)
         real.append({"return": round(float(episode.rewards.sum()), 2), "success": bool(task.succeeded(episode.states))})
     env.close()
-    print(json.dumps({"run": benchlib.display_path(args.run_dir), "episode": checkpoint["episode"], "n": len(data),
+    print(json.dumps({"run": benchlib.display_path(args.run_dir), "episode": run.episode, "n": len(data),
                       "overrides": overrides, "fresh": args.fresh, "predicted_before": round(before, 2),
                       "predicted_after": round(found.value, 2),
                       "predicted_after_task_reward": round(after_task, 2),

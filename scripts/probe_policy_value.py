@@ -25,7 +25,7 @@ from pathlib import Path
 
 import benchlib
 import torch
-from probe_policy_search import refitted
+from probe_policy_search import loaded, refitted
 from torch import Tensor
 
 from qtl.checkpoint import load_checkpoint
@@ -52,9 +52,11 @@ def main() -> None:
         raise SystemExit("--start-scale must be in (0, 1]")
     torch.set_num_threads(args.threads)
 
-    data_checkpoint = load_checkpoint(args.data)
+    run = loaded(args.run_dir, args.data, overrides)
+    data_checkpoint = run.checkpoint
     policy_checkpoint = load_checkpoint(args.policy) if args.policy else data_checkpoint
-    parts, data, model = refitted(data_checkpoint, overrides)
+    data, model = refitted(run)
+    parts = run.parts
     task = parts.task
     start = Gaussian(parts.start.mean, parts.start.cov * args.start_scale**2)
     policy = parts.initial_policy()
@@ -72,10 +74,11 @@ def main() -> None:
         """∂V/∂ψ flattened."""
         return torch.cat([g.reshape(-1) for g in torch.autograd.grad(value, params)])
 
-    moments = MomentMatching(model, policy, parts.reward, angle_dims=task.angle_dims)
+    moments = MomentMatching(model, policy, parts.reward, angle_dims=task.angle_dims, engine=parts.engine)
     propagators = {name: Particles(model, policy, parts.reward, angle_dims=task.angle_dims,
                                    num_particles=args.particles, num_features=args.features, expected_reward=False,
-                                   seed=args.seed, **settings) for name, settings in variants.items()}
+                                   seed=args.seed, engine=parts.engine, **settings)
+                   for name, settings in variants.items()}
     if args.gradients:
         reference = gradient(moments.rollout(start, task.horizon).value)
         for name, particles in propagators.items():

@@ -14,20 +14,15 @@ from pathlib import Path
 
 import gymnasium
 import numpy as np
-from omegaconf import OmegaConf
 from PIL import Image
 
-from qtl.build import build
-from qtl.checkpoint import latest_checkpoint, load_checkpoint
+from qtl.runs import load_run
 
 
 def frames_of(run_dir: Path, seed: int) -> tuple[list[np.ndarray], float]:
     """The rendered frames of one episode of the run's final policy, and its return."""
-    checkpoint = load_checkpoint(latest_checkpoint(run_dir))
-    parts = build(OmegaConf.create(checkpoint["config"]))
-    policy = parts.initial_policy()
-    policy.load_state_dict(checkpoint["policy"])
-    act, task = parts.actor(policy), parts.task
+    run = load_run(run_dir)
+    act, task = run.parts.actor(run.policy()), run.parts.task
     env = gymnasium.make(task.env_id, render_mode="rgb_array", **task.env_kwargs)
     obs, _ = env.reset(seed=seed, options=task.reset_options)
     frames, total = [env.render()], 0.0

@@ -44,7 +44,7 @@ if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ] || [ "$missing_mujoco" = 1 ] \
   echo "$want" > "$stamp"
 fi
 
-# The native exp-sum kernel (qtl/kernels/native/exp_sum.c), compiled once per source, flags and CPU.
+# The native kernels (the C sources of qtl/kernels/native/, one library), compiled once per source, flags and CPU.
 # Optional: without it qtl uses the torch path, and a failed build says so in one line.
 .venv/bin/python -m qtl.kernels.native.build --optional \
-  || echo "qtl: native exp-sum kernel not built; qtl will use the torch path" >&2
+  || echo "qtl: native kernels not built; qtl will use the torch path" >&2

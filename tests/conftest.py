@@ -12,7 +12,6 @@ from torch import Tensor
 
 from qtl.features import AngleFeatures
 from qtl.gaussian import MomentMatch
-from qtl.kernels import exp_sum, formulation
 from qtl.models import DynamicsGP, GPHyperparameters, GPPosteriorCache
 
 # Under pytest-xdist (`pytest -n 2`, the README's command) each worker gets one torch thread, and the
@@ -30,19 +29,6 @@ DTYPE = torch.float64
 MC_Z = 5.0
 MC_ATOL = 1e-10
 MC_SAMPLES = 100_000
-
-
-@pytest.fixture(autouse=True)
-def _kernel_switches_restored():
-    """Each test starts on the library's own switches (torch exp sums, reference moments) and leaves them so.
-
-    ``qtl.build.build`` sets both process-wide from the config, whose defaults are now the fast
-    paths (``auto``); without this a test's outcome would hang on which tests ran before it.
-    """
-    library, moments = exp_sum._STATE.library, formulation.active_formulation()
-    yield
-    exp_sum._STATE.library = library
-    formulation._ACTIVE[0] = moments
 
 
 class MonteCarlo:

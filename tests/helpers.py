@@ -123,3 +123,28 @@ def squashed_rbf_parts(gp_factory: Callable, state_dim: int, angle_dims: tuple[i
     targets = torch.randn(num_basis, 1, generator=gen, dtype=torch.float64)
     policy = SquashedPolicy(RBFPolicy(state_dim + len(angle_dims), 1, num_basis, targets=targets, generator=gen), 2.0)
     return gp, policy, quadratic_reward(state_dim, angle_dims)
+
+
+# A task file for gymnasium's Pendulum-v1 as a user writes one (docs/guide/byo-env.md), on the tiny budget; the
+# reward's target and weight are left to fill in.
+PENDULUM_TASK_TEMPLATE = """\
+name: pendulum
+env:
+  id: Pendulum-v1
+horizon: 6
+angle_dims: []
+policy_size: 4
+start:
+  mean: [1.0, 0.0, 0.0]
+  std: [0.05, 0.05, 0.1]
+reward:
+  angle_dims: []
+  target: {target}
+  weight: {weight}
+  width: 0.5
+success:
+  threshold: 0.2
+  last_steps: 2
+"""
+PENDULUM_TASK = PENDULUM_TASK_TEMPLATE.format(target="[1.0, 0.0, 0.0]",
+                                              weight="[[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 0.0]]")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import functools
 import logging
 import math
 
@@ -150,7 +151,6 @@ def _data(parts: Parts, episodes: int = 1) -> TransitionDataset:
 
 def test_kernels_backend_is_chosen_in_build_and_a_bad_one_is_refused():
     from qtl.errors import UserError
-    from qtl.kernels import active_backend, use_backend
     from qtl.kernels.native import load_exp_sum
 
     try:
@@ -158,13 +158,12 @@ def test_kernels_backend_is_chosen_in_build_and_a_bad_one_is_refused():
         expected = "native"
     except ImportError:
         expected = "torch"
-    try:
-        assert build(tiny_config("kernels.backend=torch")).kernel_backend == "torch" == active_backend()
-        assert build(tiny_config()).kernel_backend == expected == active_backend()  # the default: auto
-        with pytest.raises(UserError, match=r"kernels\.backend must be one of"):
-            build(tiny_config("kernels.backend=cuda"))
-    finally:
-        use_backend("torch")
+    torch_parts = build(tiny_config("kernels.backend=torch"))
+    assert torch_parts.kernel_backend == "torch" == torch_parts.engine.exp_sums
+    parts = build(tiny_config())  # the default: auto
+    assert parts.kernel_backend == expected and parts.make_propagator.keywords["engine"] is parts.engine
+    with pytest.raises(UserError, match=r"kernels\.backend must be one of"):
+        build(tiny_config("kernels.backend=cuda"))
 
 
 # -- recipe=mc_pilco and policy dropout -----------------------------------------------------------------
@@ -193,7 +192,7 @@ def test_recipe_mc_pilco_composes_the_particle_recipe():
 
 def test_recipe_mc_pilco_builds_a_dropout_network_searched_by_the_schedule():
     parts = build(train_config(*ADAM_TINY, "recipe=mc_pilco", "policy.num_basis=30"))
-    assert isinstance(parts.search, AdamSearch) and parts.search.plateau == PlateauRule(0.99, 0.08, 200, 200)
+    assert isinstance(parts.search, AdamSearch) and parts.search.settings.plateau == PlateauRule(0.99, 0.08, 200, 200)
     policy = parts.initial_policy()
     assert isinstance(policy, SquashedPolicy) and isinstance(policy.policy, RBFNetwork)
     centres = policy.policy.centres.detach()
@@ -257,20 +256,29 @@ def test_the_mc_pilco_recipe_transfers_theta_and_psi_unchanged(tmp_path):
         assert torch.equal(psi_0[name], value), name
 
 
+def factory_keywords(factory: object) -> dict:
+    """The keywords bound on a propagator factory, through its layers of ``functools.partial`` (outer ones win)."""
+    keywords: dict = {}
+    while isinstance(factory, functools.partial):
+        keywords = {**factory.keywords, **keywords}
+        factory = factory.func
+    return keywords
+
+
 def test_the_recipe_binds_the_tasks_angle_position_cost_where_it_declares_one():
     """recipe=mc_pilco (search_cost auto): cart-pole's MC-PILCO cost; mountain car (none declared): widened."""
     parts = build(train_config("recipe=mc_pilco"))
-    keywords = parts.make_propagator.keywords
+    keywords = factory_keywords(parts.make_propagator)
     assert keywords["search_cost"] == "task" and isinstance(keywords["task_search_cost"], AngleDistanceReward)
     cost = keywords["task_search_cost"]
     upright = torch.tensor([0.0, 3.0, math.pi, -2.0], dtype=torch.float64)  # speeds left out
     torch.testing.assert_close(cost(upright), torch.tensor(1.0, dtype=torch.float64))
     car = build(train_config("recipe=mc_pilco", "task=mountaincar"))
-    assert car.make_propagator.keywords["search_cost"] == "widened"
-    assert "task_search_cost" not in car.make_propagator.keywords
+    assert factory_keywords(car.make_propagator)["search_cost"] == "widened"
+    assert "task_search_cost" not in factory_keywords(car.make_propagator)
     assert cost.absolute_angles  # MC-PILCO's |θ| − π: the cart-pole's default
     wrapped = build(train_config("recipe=mc_pilco", "task.search_reward.angles=wrapped"))
-    assert not wrapped.make_propagator.keywords["task_search_cost"].absolute_angles
+    assert not factory_keywords(wrapped.make_propagator)["task_search_cost"].absolute_angles
 
 
 def test_a_search_cost_the_task_cannot_give_is_refused_before_any_work():

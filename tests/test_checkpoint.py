@@ -20,6 +20,7 @@ from qtl.checkpoint import (
     load_checkpoint,
     prune_checkpoints,
     rng_state,
+    run_checkpoint,
     run_lock,
     save_checkpoint,
     set_rng_state,
@@ -67,6 +68,17 @@ def test_latest_checkpoint_is_the_highest_episode_and_ignores_other_files(tmp_pa
     (tmp_path / CHECKPOINT_DIR / "episode_0099.pt.tmp").write_bytes(b"half")  # a crash mid-write
     (tmp_path / CHECKPOINT_DIR / "episode_99.pt").write_bytes(b"not ours")
     assert latest_checkpoint(tmp_path).name == "episode_0010.pt"
+
+
+def test_run_checkpoint_reads_the_newest_or_the_chosen_one_and_names_a_directory_without_a_run(tmp_path):
+    for episode in (0, 1):
+        save_checkpoint(tmp_path, episode, {"config": f"episodes: {episode}"})
+    assert run_checkpoint(tmp_path)["episode"] == 1
+    assert run_checkpoint(tmp_path, checkpoint_path(tmp_path, 0))["config"] == "episodes: 0"
+    with pytest.raises(CheckpointError, match="does not exist"):
+        run_checkpoint(tmp_path / "absent")
+    with pytest.raises(CheckpointError, match="holds no checkpoints"):
+        run_checkpoint(tmp_path / CHECKPOINT_DIR)
 
 
 def test_prune_keeps_the_newest_and_episodes_done_counts_from_the_newest(tmp_path):

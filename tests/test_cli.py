@@ -14,6 +14,7 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 
 from qtl.checkpoint import run_lock
 from tests.helpers import CLI_TINY as TINY
+from tests.helpers import PENDULUM_TASK
 
 pytestmark = pytest.mark.e2e
 
@@ -149,27 +150,6 @@ def test_help_describes_the_keys(tmp_path):
     assert done.returncode == 0
     assert "episodes [9]" in done.stdout and "learned episodes after them" in done.stdout
     assert "optimizer=lbfgs" in done.stdout and "task.horizon" in done.stdout
-
-
-PENDULUM_TASK = """\
-name: pendulum
-env:
-  id: Pendulum-v1
-horizon: 6
-angle_dims: []
-policy_size: 4
-start:
-  mean: [1.0, 0.0, 0.0]
-  std: [0.05, 0.05, 0.1]
-reward:
-  angle_dims: []
-  target: [1.0, 0.0, 0.0]
-  weight: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 0.0]]
-  width: 0.5
-success:
-  threshold: 0.2
-  last_steps: 2
-"""
 
 
 def test_byo_env_recipe_own_task_from_a_search_path(tmp_path):

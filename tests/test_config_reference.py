@@ -13,13 +13,13 @@ from qtl.config import (
     REFERENCE_COMMAND,
     REFERENCE_PAGE,
     TrainConfig,
-    _keys,
     config_groups,
     default_options,
     groups_text,
     help_text,
     reference_markdown,
 )
+from qtl.config.help import _keys
 
 ROOT = Path(__file__).resolve().parents[1]
 

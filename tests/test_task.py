@@ -10,6 +10,7 @@ import gymnasium
 import numpy as np
 import pytest
 
+from qtl.config.validate import checked_task
 from qtl.episodes import random_actor, run_episode
 from qtl.errors import TaskError
 from qtl.task import DEFAULT_START_MIN_STD, Kinematics, Task, constructor_parameters, env_settings
@@ -60,7 +61,7 @@ def test_distance_is_the_pole_tip_distance_and_success_needs_the_whole_window():
 )
 def test_bad_tasks_are_named(change, message):
     with pytest.raises(TaskError, match=message):
-        Task.from_config({**CARTPOLE, **change})
+        checked_task({**CARTPOLE, **change})
 
 
 PENDULUM = {
@@ -208,7 +209,7 @@ def test_a_float32_env_with_asymmetric_bounds_runs_an_episode_end_to_end():
 )
 def test_infinite_or_zero_width_action_bounds_are_refused(low, high):
     with pytest.raises(TaskError, match="must have finite action bounds low < high"):
-        Task.from_config(point(low=low, high=high))
+        checked_task(point(low=low, high=high))
 
 
 BOX = gymnasium.spaces.Box(-1.0, 1.0, (1,), np.float32)
@@ -233,7 +234,7 @@ BOX = gymnasium.spaces.Box(-1.0, 1.0, (1,), np.float32)
 )
 def test_spaces_qtl_cannot_learn_with_are_refused_saying_why(spaces, message):
     with pytest.raises(TaskError, match=message):
-        Task.from_config(point(**spaces))
+        checked_task(point(**spaces))
 
 
 ENV_MODULE = '''
@@ -303,7 +304,7 @@ def test_a_missing_module_says_what_to_install(call, env_package):
 def test_a_module_that_does_not_register_the_id_is_named(env_package):
     cfg = {**point(), "env": {"id": "tiny_envs.none:TinyEnv-v0"}}
     with pytest.raises(TaskError, match=r"task.env.id='tiny_envs.none:TinyEnv-v0': .*does not register 'TinyEnv-v0'"):
-        Task.from_config(cfg)
+        checked_task(cfg)
 
 
 def test_action_repeat_holds_each_action_and_the_horizon_counts_held_steps():
@@ -333,7 +334,7 @@ def test_action_repeat_multiplies_an_env_horizon_kwarg_and_one_gives_todays_env(
 @pytest.mark.parametrize("repeat", [0, -1, 1.5, "2"])
 def test_action_repeat_below_one_step_is_refused(repeat):
     with pytest.raises(TaskError, match=r"task\.action_repeat must be a whole number of env steps >= 1"):
-        Task.from_config({**point(), "action_repeat": repeat})
+        checked_task({**point(), "action_repeat": repeat})
     with pytest.raises(TaskError, match=r"task\.action_repeat must"):
         env_settings({**point(), "action_repeat": repeat})
 
@@ -373,7 +374,7 @@ def test_a_task_with_no_start_distribution_anywhere_estimates_it():
 )
 def test_bad_start_settings_are_named(change, message):
     with pytest.raises(TaskError, match=message):
-        Task.from_config(spinner_task(**change))
+        checked_task(spinner_task(**change))
 
 
 def test_estimated_start_takes_the_circular_mean_of_angles_and_floors_the_std():
@@ -432,7 +433,7 @@ def test_search_reward_angles_are_checked():
     task = Task.from_config({**CARTPOLE, "search_reward": {**search, "angles": "absolute"}})
     assert task.search_cost_angles == "absolute"
     with pytest.raises(TaskError, match=r"task\.search_reward\.angles must be one of wrapped, absolute, got 'raw'"):
-        Task.from_config({**CARTPOLE, "search_reward": {**search, "angles": "raw"}})
+        checked_task({**CARTPOLE, "search_reward": {**search, "angles": "raw"}})
 
 
 @pytest.mark.parametrize("search", [
@@ -443,7 +444,7 @@ def test_search_reward_angles_are_checked():
 ])
 def test_bad_search_rewards_are_refused(search):
     with pytest.raises(TaskError, match=r"task\.search_reward needs"):
-        Task.from_config({**CARTPOLE, "search_reward": search})
+        checked_task({**CARTPOLE, "search_reward": search})
 
 
 def test_kinematics_take_the_envs_control_period_times_the_action_repeat():
@@ -464,9 +465,9 @@ def test_kinematics_take_the_envs_control_period_times_the_action_repeat():
 ])
 def test_bad_kinematics_are_refused(kinematics, message):
     with pytest.raises(TaskError, match=message):
-        Task.from_config({**CARTPOLE, "kinematics": kinematics})
+        checked_task({**CARTPOLE, "kinematics": kinematics})
 
 
 def test_kinematics_without_a_period_need_an_env_with_dt(point_env):
     with pytest.raises(TaskError, match=r"task\.kinematics\.period is not set and the env has no dt"):
-        Task.from_config({**point(), "kinematics": {"positions": [0], "velocities": [0]}})
+        checked_task({**point(), "kinematics": {"positions": [0], "velocities": [0]}})

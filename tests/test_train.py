@@ -12,7 +12,8 @@ from qtl.checkpoint import latest_checkpoint, load_checkpoint, refuse_existing_r
 from qtl.config import check_budget, check_group_keys, run_dir, show_progress
 from qtl.errors import CheckpointError, TaskError, UserError
 from qtl.loop import run
-from qtl.train import auto_resume, comparable, one_line, resume_config, stored_config
+from qtl.runs import stored_config
+from qtl.train import auto_resume, comparable, one_line, resume_config
 from tests.helpers import tiny_config
 
 

@@ -2,28 +2,18 @@
 
 A moment-matching step spends most of its time here: E(E+1)/2 sums over `n x n` matrices per
 step (the Q matrices of gp0/gp2, Deisenroth 2010, Sec. 2.3). This module holds the plain torch
-implementation, blocked so that exp(A Bᵀ) is never stored whole, and the switch between it and
-its native twin (`qtl/kernels/native/exp_sum.c`, float64 on the CPU): ``use_backend``.
+implementation, blocked so that exp(A Bᵀ) is never stored whole; float64 CPU operands take its
+native twin (`qtl/kernels/native/exp_sum.c`) when the engine says ``exp_sums="native"``.
 """
 
 from __future__ import annotations
-
-import contextlib
-import logging
-from collections.abc import Iterator
-from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
-from qtl.errors import UserError
 from qtl.kernels import native
-
-logger = logging.getLogger(__name__)
-
-BACKENDS = ("auto", "native", "torch")
-BUILD_COMMAND = "python -m qtl.kernels.native.build"
+from qtl.kernels.engine import DEFAULT_ENGINE, Engine
 
 # The `n x m` matrix exp(A Bᵀ) is formed in blocks of rows holding about this many entries
 # (2 MiB in float64): a block stays in cache through product, exp, weighting and sum, which
@@ -93,61 +83,6 @@ class _WeightedExpSum(torch.autograd.Function):
         return grad_a, grad_b, torch.cat(grad_w, dim=-2) if need_w else None, None
 
 
-@dataclass
-class _BackendState:
-    """The native kernel in effect (None: the torch path), and whether the fallback was logged."""
-
-    library: native.ExpSumLibrary | None = None
-    fallback_logged: bool = False
-
-
-# The torch path until a backend is chosen (the run's config calls ``use_backend``).
-_STATE = _BackendState()
-
-
-def use_backend(name: str = "auto") -> str:
-    """Choose how ``weighted_exp_sum`` runs on float64 CPU tensors; returns the backend in effect.
-
-    ``native``: the compiled kernel, a UserError (before any work) when it cannot load; ``torch``:
-    the plain torch path; ``auto``: native when it loads, else torch, with one log line (once per
-    process) that says why. Other devices and dtypes always take the torch path.
-    """
-    if name not in BACKENDS:
-        raise UserError(f"kernels.backend must be one of {', '.join(BACKENDS)}, got {name!r}")
-    library = None
-    if name != "torch":
-        try:
-            library = native.load_exp_sum()
-        except ImportError as err:
-            if name == "native":
-                raise UserError(
-                    f"kernels.backend=native, but the native exp-sum kernel cannot load ({err}): "
-                    f"build it with `{BUILD_COMMAND}`, or choose kernels.backend=auto or torch"
-                ) from err
-            if not _STATE.fallback_logged:
-                logger.info(
-                    "native exp-sum kernel unavailable (%s); using the torch path (build it: `%s`)", err, BUILD_COMMAND
-                )
-                _STATE.fallback_logged = True
-    _STATE.library = library
-    return active_backend()
-
-
-def active_backend() -> str:
-    """``native`` or ``torch``: how float64 CPU exp sums are computed now."""
-    return "torch" if _STATE.library is None else "native"
-
-
-@contextlib.contextmanager
-def backend(name: str) -> Iterator[str]:
-    """``use_backend(name)`` for the duration of a ``with`` block (yields the backend in effect)."""
-    previous = _STATE.library
-    try:
-        yield use_backend(name)
-    finally:
-        _STATE.library = previous
-
-
 def _native_fits(*tensors: Tensor) -> bool:
     """Whether the native kernel takes these operands: all float64 on the CPU."""
     return all(t.device.type == "cpu" and t.dtype == torch.float64 for t in tensors)
@@ -173,19 +108,21 @@ def _native_weighted_exp_sum(a: Tensor, b: Tensor, w: Tensor, library: native.Ex
     return native.NativeWeightedExpSum.apply(a, b, w, library, torch.is_grad_enabled())
 
 
-def weighted_exp_sum(a: Tensor, b: Tensor, w: Tensor, block_rows: int | None = None) -> Tensor:
+def weighted_exp_sum(
+    a: Tensor, b: Tensor, w: Tensor, block_rows: int | None = None, *, engine: Engine = DEFAULT_ENGINE
+) -> Tensor:
     """Σ_ij W_ij exp((A Bᵀ)_ij): `...` for A `... x n x K`, B `... x m x K`, W `... x n x m`.
 
-    Batch dimensions broadcast. Float64 CPU operands take the backend chosen by ``use_backend``;
-    on the torch path ``block_rows`` (default: from ``BLOCK_ENTRIES``) sets how many rows of the
-    `n x m` matrix are formed at a time. Autograd memory is O((n + m) K) on either path.
+    Batch dimensions broadcast. Float64 CPU operands take the compiled kernel when ``engine.exp_sums``
+    is ``native`` (the engine resolved it loads); on the torch path ``block_rows`` (default: from
+    ``BLOCK_ENTRIES``) sets how many rows of the `n x m` matrix are formed at a time. Autograd memory
+    is O((n + m) K) on either path.
     """
     _check_shapes(a, b, w)
     if a.shape[-2] == 0 or b.shape[-2] == 0:  # an empty sum: zeros, with their (zero) gradients
         return (w * torch.exp(a @ b.mT)).sum((-2, -1))
-    library = _STATE.library
-    if library is not None and _native_fits(a, b, w):
-        return _native_weighted_exp_sum(a, b, w, library)
+    if engine.exp_sums == "native" and _native_fits(a, b, w):
+        return _native_weighted_exp_sum(a, b, w, native.binding_once(native.ExpSumLibrary))
     batch = torch.broadcast_shapes(a.shape[:-2], b.shape[:-2])
     a, b = a.expand(*batch, *a.shape[-2:]), b.expand(*batch, *b.shape[-2:])
     return _WeightedExpSum.apply(a, b, w, block_rows or _block_rows(a, b))

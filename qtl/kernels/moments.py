@@ -15,8 +15,8 @@ from torch import Tensor
 from torch.autograd.function import once_differentiable
 
 from qtl.gaussian import Gaussian, MomentMatch, batch_matmul, full_batch, identity, symmetrize
+from qtl.kernels.engine import DEFAULT_ENGINE, Engine
 from qtl.kernels.exp_sum import weighted_exp_sum
-from qtl.kernels.formulation import fused, native
 from qtl.kernels.native.se_moments import native_fits, se_kernel_moments
 
 
@@ -60,8 +60,8 @@ class SEKernelMoments:
     `... x E x n x n` = (K_a + σ_ε²I)⁻¹ the predictive covariance includes the expected GP
     posterior variance α_a² − tr(K_inv_a Q_aa) (PILCO gp0); without, f is a deterministic
     RBF network (gp2). Everything that depends only on these tensors is computed here, once,
-    in the shapes the per-call arithmetic broadcasts against. A call follows the formulation in
-    effect (:mod:`qtl.kernels.formulation`): ``reference`` factorises B_a and R̃_ab separately,
+    in the shapes the per-call arithmetic broadcasts against. A call follows ``engine``
+    (:class:`qtl.kernels.engine.Engine`): ``reference`` factorises B_a and R̃_ab separately,
     ``fused`` inverts them in one batch with a closed-form backward and uses X = I − R̃⁻¹.
     """
 
@@ -72,6 +72,8 @@ class SEKernelMoments:
         lengthscales: Tensor,
         signal_variance: Tensor,
         K_inv: Tensor | None = None,
+        *,
+        engine: Engine = DEFAULT_ENGINE,
     ) -> None:
         num_out = beta.shape[-2]
         if lengthscales.shape[-2:] != (num_out, inputs.shape[-1]):
@@ -80,6 +82,7 @@ class SEKernelMoments:
             )
         if beta.shape[-1] != inputs.shape[-2]:
             raise ValueError(f"beta has {beta.shape[-1]} columns for {inputs.shape[-2]} inputs")
+        self.engine = engine
         self.inputs = inputs
         self.beta = beta
         self.inv_ls = lengthscales.reciprocal()  # ... x E x D
@@ -137,29 +140,30 @@ class SEKernelMoments:
     def __call__(self, state: Gaussian) -> MomentMatch:
         """Mean `... x E`, covariance `... x E x E` and input–output terms `... x D x E`."""
         self._check_dim(state)
-        if not fused():
+        if not self.engine.fused:
             state = state.expand()
             return self._reference_call(state.mean, state.cov)
         state = full_batch(state)
-        mean, cov, gain = self._fused_call(state.mean, state.cov)
+        mean, cov, gain = self._fused_call(state.mean, state.cov, self.engine)
         return MomentMatch(mean=mean, cov=cov, cross_cov=batch_matmul(state.cov, gain), gain=gain)
 
     def mean_cov_gain(self, state: Gaussian) -> tuple[Tensor, Tensor, Tensor]:
         """Mean `... x E`, covariance `... x E x E` and gain Σ⁻¹ cov[x, f] `... x D x E`: all but cov[x, f]."""
-        if not fused():
+        if not self.engine.fused:
             out = self(state)
             return out.mean, out.cov, out.gain
         self._check_dim(state)
-        return self._fused_call(state.mean, state.cov)
+        return self._fused_call(state.mean, state.cov, self.engine)
 
-    def _fused_call(self, mean: Tensor, cov: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    def _fused_call(self, mean: Tensor, cov: Tensor, engine: Engine) -> tuple[Tensor, Tensor, Tensor]:
         """Mean, covariance and gain, fused formulation (one factorisation of all B_a and R̃_ab, constant maps).
 
-        Under ``native`` (float64 CPU operands) one compiled call forward and one backward compute the same.
+        Under ``engine.moments="native"`` (float64 CPU operands) one compiled call forward and one backward compute
+        the same; ``engine.exp_sums`` picks the exp sums' code otherwise.
         """
         constants = (self.inputs, self.beta, self.inv_ls, self.log_sf2, self.weights)
-        if native() and self.inputs.shape[-2] > 0 and native_fits(mean, cov, *constants):
-            out_mean, out_cov, gain = se_kernel_moments(mean, cov, *constants)
+        if engine.native and self.inputs.shape[-2] > 0 and native_fits(mean, cov, *constants):
+            out_mean, out_cov, gain = se_kernel_moments(mean, cov, *constants, lower_pairs=engine.lower_pairs)
             if self._model_variance is not None:
                 out_cov = out_cov + self._model_variance
             return out_mean, out_cov, gain
@@ -196,7 +200,7 @@ class SEKernelMoments:
         appended = torch.addcmul(self._append_shift, uv[..., None], self._append_scale)
         operands = torch.cat([torch.where(self._is_a, sides_x, sides), appended], dim=-1)
         second = torch.exp(-half_logdets[..., num_out:]) * weighted_exp_sum(
-            operands.select(-3, 0), operands.select(-3, 1), self.weights
+            operands.select(-3, 0), operands.select(-3, 1), self.weights, engine=engine
         )  # ... x P
         # Spread to E x E, then the covariance: symmetric by construction (second[a, b] is second[b, a]).
         out_cov = second.index_select(-1, self.pair_of).unflatten(-1, (num_out, num_out))
@@ -251,7 +255,7 @@ class SEKernelMoments:
         ones = torch.ones_like(u)[..., None]
         lhs = torch.cat([left_x, u[..., None], ones], dim=-1)  # ... x P x n x (D + 2)
         rhs = torch.cat([right, ones, v[..., None]], dim=-1)
-        second = torch.exp(-half_logdet_r) * weighted_exp_sum(lhs, rhs, self.weights)  # ... x P
+        second = torch.exp(-half_logdet_r) * weighted_exp_sum(lhs, rhs, self.weights, engine=self.engine)  # ... x P
         num_out = out_mean.shape[-1]
         second = second[..., self.pair_of].unflatten(-1, (num_out, num_out))
         out_cov = second - out_mean[..., :, None] * out_mean[..., None, :]

@@ -9,6 +9,7 @@ import torch
 from torch import Tensor, nn
 
 from qtl.gaussian import Gaussian, GaussianMap, MomentMatch
+from qtl.kernels.engine import DEFAULT_ENGINE, Engine
 
 
 class Policy(nn.Module, ABC):
@@ -37,11 +38,14 @@ class Policy(nn.Module, ABC):
         """Actions `... x F` for features `... x D`."""
 
     @abstractmethod
-    def prepare(self) -> GaussianMap:
-        """The moment-matching map of this policy with its ψ-only quantities precomputed."""
+    def prepare(self, engine: Engine = DEFAULT_ENGINE) -> GaussianMap:
+        """The moment-matching map of this policy with its ψ-only quantities precomputed, computed by ``engine``."""
 
-    def actions(self) -> Callable[[Tensor], Tensor]:
-        """``forward`` with its ψ-only quantities made once (a particle rollout takes it once, calls it each step)."""
+    def actions(self, engine: Engine = DEFAULT_ENGINE) -> Callable[[Tensor], Tensor]:
+        """``forward`` with its ψ-only quantities made once (a particle rollout takes it once, calls it each step).
+
+        ``engine``: for a policy whose forward has twins (the RBF network); the others ignore it.
+        """
         return self.forward
 
     def set_dropout(self, rate: float, generator: torch.Generator | None = None) -> None:
@@ -49,6 +53,6 @@ class Policy(nn.Module, ABC):
         if rate != 0.0:
             raise ValueError(f"{type(self).__name__} has no dropout: use policy=rbf_network, or optimizer.dropout=0")
 
-    def moments(self, state: Gaussian) -> MomentMatch:
-        """Mean `... x F`, covariance `... x F x F` and input–output terms `... x D x F` of π(y)."""
-        return self.prepare()(state)
+    def moments(self, state: Gaussian, engine: Engine = DEFAULT_ENGINE) -> MomentMatch:
+        """Mean `... x F`, covariance `... x F x F` and input–output terms `... x D x F` of π(y), by ``engine``."""
+        return self.prepare(engine)(state)

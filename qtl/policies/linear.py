@@ -6,6 +6,7 @@ import torch
 from torch import Tensor, nn
 
 from qtl.gaussian import Gaussian, GaussianMap, MomentMatch
+from qtl.kernels.engine import DEFAULT_ENGINE, Engine
 from qtl.policies.base import Policy
 
 # Standard deviation of the random initial entries of W.
@@ -45,8 +46,8 @@ class LinearPolicy(Policy):
             return x @ self.weight.mT + self.bias
         return _row_times(x, self.per_point(self.weight)) + self.per_point(self.bias)
 
-    def prepare(self) -> GaussianMap:
-        """Exact moments: mean W μ + b, covariance W Σ Wᵀ, gain Wᵀ; batched ψ broadcast against the input's batch."""
+    def prepare(self, engine: Engine = DEFAULT_ENGINE) -> GaussianMap:
+        """Exact moments: mean W μ + b, covariance W Σ Wᵀ, gain Wᵀ; batched ψ broadcast (every ``engine`` alike)."""
         weight, bias = self.weight, self.bias
         batched = bool(self.batch_shape)
 

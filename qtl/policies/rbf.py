@@ -10,6 +10,7 @@ from torch import Tensor, nn
 
 from qtl.gaussian import GaussianMap
 from qtl.kernels import SEKernelMoments
+from qtl.kernels.engine import DEFAULT_ENGINE, Engine
 from qtl.policies.base import Policy
 
 # The policy's pseudo-GP has fixed hyper-parameters (PILCO): signal variance 1 and noise
@@ -104,7 +105,7 @@ class RBFPolicy(Policy):
         """Actions `... x F` for features `... x D` (Eq. 5); batched ψ: `R x S x F` for `R x S x D`."""
         return self._act(x, self.per_point(self.weights()))
 
-    def actions(self) -> Callable[[Tensor], Tensor]:
+    def actions(self, engine: Engine = DEFAULT_ENGINE) -> Callable[[Tensor], Tensor]:
         """``forward`` with β_π = (K_π + σ_π²I)⁻¹ y_π solved once (not at every step of a rollout)."""
         return functools.partial(self._act, weights=self.per_point(self.weights()))
 
@@ -113,6 +114,7 @@ class RBFPolicy(Policy):
         kern = POLICY_SIGNAL_VARIANCE * se_activations(self, x, self.support_points)
         return (kern * weights).sum(-1)
 
-    def prepare(self) -> GaussianMap:
+    def prepare(self, engine: Engine = DEFAULT_ENGINE) -> GaussianMap:
         """Exact moments of the RBF network at Gaussian inputs, β_π computed once (PILCO gp2); batched ψ broadcast."""
-        return SEKernelMoments(self.support_points, self.weights(), self.lengthscales, self._signal_variance())
+        return SEKernelMoments(self.support_points, self.weights(), self.lengthscales, self._signal_variance(),
+                               engine=engine)

@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-import contextlib
-from collections.abc import Iterator
+import functools
+from collections.abc import Callable
 
 import torch
 from torch import Tensor, nn
@@ -11,30 +11,10 @@ from torch.autograd.function import FunctionCtx, once_differentiable
 
 from qtl.gaussian import GaussianMap
 from qtl.kernels import SEKernelMoments
-from qtl.kernels.formulation import fused, native
+from qtl.kernels.engine import DEFAULT_ENGINE, Engine
 from qtl.kernels.native import rbf_network as native_network
 from qtl.policies.base import Policy
 from qtl.policies.rbf import se_activations
-
-NETWORK_FORMS = ("auto", "fused", "reference")
-_FORM = ["auto"]  # how forward computes the network (``network_form`` sets it)
-
-
-@contextlib.contextmanager
-def network_form(form: str) -> Iterator[None]:
-    """Within: ``RBFNetwork.forward`` by ``form`` (tests and benchmarks of the twins).
-
-    ``auto``: the formulation's (plain under ``reference``, the fused op under ``fused``, its compiled twin under
-    ``native`` where it applies); ``fused``: the fused torch op even under ``native``; ``reference``: the plain
-    autograd form whatever the formulation.
-    """
-    if form not in NETWORK_FORMS:
-        raise ValueError(f"network form must be one of {', '.join(NETWORK_FORMS)}, got {form!r}")
-    before, _FORM[0] = _FORM[0], form
-    try:
-        yield
-    finally:
-        _FORM[0] = before
 
 
 class RBFNetwork(Policy):
@@ -80,22 +60,23 @@ class RBFNetwork(Policy):
         """exp(−½ ‖(y − c_s)/ℓ‖²) `... x F x N` for features `... x D` (batched ψ: `R x S x D`)."""
         return se_activations(self, x, self.centres)
 
-    def forward(self, x: Tensor) -> Tensor:
+    def forward(self, x: Tensor, engine: Engine = DEFAULT_ENGINE) -> Tensor:
         """Actions `... x F` for features `... x D`, basis dropout applied when set.
 
-        Unbatched ψ under the fused formulation: one autograd op (``_NetworkValues``, the same values and
-        gradients to round-off); under the native one, for float64 CPU operands, its compiled twin
-        (`qtl/kernels/native/rbf_network.c`). Their timings against this plain form: `scripts/bench_particle_step.py`.
+        Unbatched ψ, points `... x D` (at least 2-D) and ``engine`` fused: one autograd op (``_NetworkValues``,
+        the same values and gradients to round-off); native, for float64 CPU operands: its compiled twin
+        (`qtl/kernels/native/rbf_network.c`); ``engine.network`` may pin one form (:class:`~qtl.kernels.Engine`).
+        Their timings against this plain form: `scripts/bench_particle_step.py`.
         """
         keep = None
         if self.dropout > 0.0:  # one mask per point and basis, shared by the action dimensions
             keep = torch.rand((*x.shape[:-1], 1, self.num_basis), generator=self._dropout_generator,
                               dtype=x.dtype, device="cpu").to(x.device) >= self.dropout
-        if _FORM[0] != "reference" and fused() and not self.batch_shape and x.dim() >= 2:
+        if engine.network != "reference" and engine.fused and not self.batch_shape and x.dim() >= 2:
             mask = None if keep is None else keep.to(x.dtype).div_(1.0 - self.dropout).reshape(-1, self.num_basis)
             points = x.reshape(-1, x.shape[-1])
             psi = (self.centres, self.weights, self.log_lengthscales)
-            if _FORM[0] == "auto" and native() and native_network.applicable(points, *psi, mask):  # compiled
+            if engine.network == "auto" and engine.native and native_network.applicable(points, *psi, mask):
                 values = native_network.network_values(points, *psi, mask)
             else:
                 values = _NetworkValues.apply(points, *psi, mask)
@@ -105,10 +86,14 @@ class RBFNetwork(Policy):
             kern = kern * keep / (1.0 - self.dropout)
         return (kern * self.per_point(self.weights.mT)).sum(-1)
 
-    def prepare(self) -> GaussianMap:
+    def actions(self, engine: Engine = DEFAULT_ENGINE) -> Callable[[Tensor], Tensor]:
+        """``forward`` by ``engine`` (a particle rollout takes it once, calls it each step)."""
+        return functools.partial(self.forward, engine=engine)
+
+    def prepare(self, engine: Engine = DEFAULT_ENGINE) -> GaussianMap:
         """Exact moments of the network at Gaussian inputs (PILCO gp2; dropout does not apply); batched ψ broadcast."""
         signal = torch.ones(self.output_dim, dtype=self.weights.dtype, device=self.weights.device)
-        return SEKernelMoments(self.centres, self.weights.mT, self.lengthscales, signal)
+        return SEKernelMoments(self.centres, self.weights.mT, self.lengthscales, signal, engine=engine)
 
 
 class _NetworkValues(torch.autograd.Function):

@@ -11,8 +11,8 @@ from torch import Tensor
 
 from qtl.features import reference_trig_moments, trig_map, trig_stats, trig_terms
 from qtl.gaussian import Gaussian, GaussianMap, MomentMatch, compose, full_batch, symmetrize
-from qtl.kernels.formulation import fused, native
-from qtl.kernels.native import trig_moments as native_trig
+from qtl.kernels.engine import DEFAULT_ENGINE, Engine
+from qtl.kernels.native import trig as native_trig
 from qtl.policies.base import Policy
 
 # u = u_max (SIN_WEIGHT sin z + SIN3_WEIGHT sin(SIN3_FREQ z)): the third-order Fourier
@@ -111,12 +111,12 @@ def _reference_sin_squash_moments(state: Gaussian, bound: Tensor) -> MomentMatch
     return MomentMatch(mean=mean, cov=symmetrize(cov), cross_cov=state.cov @ gain, gain=gain)
 
 
-def sin_squash_moments(state: Gaussian, bound: Tensor) -> MomentMatch:
-    """Exact mean, covariance and input–output terms of :func:`sin_squash` for z ~ N(μ, Σ)."""
-    if not fused():
+def sin_squash_moments(state: Gaussian, bound: Tensor, engine: Engine = DEFAULT_ENGINE) -> MomentMatch:
+    """Exact mean, covariance and input–output terms of :func:`sin_squash` for z ~ N(μ, Σ), by ``engine``."""
+    if not engine.fused:
         return _reference_sin_squash_moments(state, bound)
     state = full_batch(state)
-    if native() and _native_bound(bound, state.mean, state.cov):  # one compiled call each way
+    if engine.native and _native_bound(bound, state.mean, state.cov):  # one compiled call each way
         mean, cov, slope = native_trig.sin_squash_terms(state.mean, state.cov, bound)
         return MomentMatch(mean=mean, cov=cov, cross_cov=state.cov * slope, gain=torch.diag_embed(slope[..., 0, :]))
     mean, cov, slope = _squash_terms(state.mean, state.cov, _SquashWeights.of(bound.to(state.mean)))
@@ -146,21 +146,21 @@ class SquashedPolicy(Policy):
         """Squashed actions `... x F` for features `... x D`."""
         return sin_squash(self.policy(x), self.action_bound.to(x))
 
-    def actions(self) -> Callable[[Tensor], Tensor]:
-        """The wrapped policy's ``actions()``, squashed."""
-        inner = self.policy.actions()
+    def actions(self, engine: Engine = DEFAULT_ENGINE) -> Callable[[Tensor], Tensor]:
+        """The wrapped policy's ``actions(engine)``, squashed."""
+        inner = self.policy.actions(engine)
         return lambda x: sin_squash(inner(x), self.action_bound.to(x))
 
-    def prepare(self) -> GaussianMap:
+    def prepare(self, engine: Engine = DEFAULT_ENGINE) -> GaussianMap:
         """The wrapped policy's moments, then exact squashing moments, chained (PILCO conCat); weights made once."""
-        inner = self.policy.prepare()
+        inner = self.policy.prepare(engine)
         weights: dict[torch.dtype, _SquashWeights] = {}
 
         def moments(state: Gaussian) -> MomentMatch:
             pre = inner(state)
-            if not fused():
+            if not engine.fused:
                 return compose(pre, _reference_sin_squash_moments(pre.output, self.action_bound.to(pre.mean)))
-            if native() and _native_bound(self.action_bound, pre.mean, pre.cov):  # one compiled call each way
+            if engine.native and _native_bound(self.action_bound, pre.mean, pre.cov):  # one compiled call each way
                 mean, cov, slope = native_trig.sin_squash_terms(pre.mean, pre.cov, self.action_bound)
                 return MomentMatch(mean=mean, cov=cov, cross_cov=pre.cross_cov * slope, gain=pre.gain * slope)
             dtype = pre.mean.dtype

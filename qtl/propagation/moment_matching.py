@@ -12,7 +12,7 @@ contain uncertainty about the function, but no noise"): σ_ε² is treated as me
 of the training targets and is not propagated. ``include_noise=True`` adds diag(σ_ε²) to the
 covariance of Δ at every step instead.
 
-Formulations (:mod:`qtl.kernels.formulation`): ``reference`` symmetrizes each step's covariance;
+Formulations (``engine.moments``, :class:`qtl.kernels.Engine`): ``reference`` symmetrizes each step's covariance;
 ``fused`` keeps it exactly symmetric by construction (the start's is symmetrized once) and skips
 the input–output covariance of Δ, which the step does not use.
 """
@@ -26,7 +26,7 @@ from torch import Tensor
 
 from qtl.gaussian import Gaussian, GaussianMap, MomentMatch, batch_matmul, full_batch, symmetrize
 from qtl.kernels import SEKernelMoments
-from qtl.kernels.formulation import fused
+from qtl.kernels.engine import DEFAULT_ENGINE, Engine
 from qtl.policies.base import Policy
 from qtl.propagation.base import DynamicsSource, Rollout
 from qtl.propagation.gp_cache import propagation_inputs
@@ -43,7 +43,8 @@ class MomentMatching:
     ``policy``: acts on the features φ(x) (``prepare()`` gives its moment map).
     ``reward``: scores the successor states. ``angle_dims``: the dynamics' angle dimensions.
     ``dtype``: of the propagation (default: the cache's); the policy must share it, start
-    distributions are converted.
+    distributions are converted. ``engine``: the code that computes every moment (features, policy,
+    GP, reward; ``qtl.build`` resolves it from ``kernels.*``).
     """
 
     def __init__(
@@ -55,8 +56,10 @@ class MomentMatching:
         angle_dims: Sequence[int] = (),
         include_noise: bool = False,
         dtype: torch.dtype | None = None,
+        engine: Engine = DEFAULT_ENGINE,
     ) -> None:
         data, self.features, self.dtype = propagation_inputs(model, policy, reward, angle_dims, dtype)
+        self.engine = engine
         self.state_dim = self.features.state_dim
         self.policy = policy
         self.reward = reward
@@ -65,16 +68,16 @@ class MomentMatching:
         self._noise_cov = torch.diag_embed(self.noise_variance)
         # Everything that depends only on data and θ is computed here, once.
         self.dynamics = SEKernelMoments(
-            data["inputs"], data["beta"], data["lengthscales"], data["signal_variance"], data["K_inv"]
+            data["inputs"], data["beta"], data["lengthscales"], data["signal_variance"], data["K_inv"], engine=engine
         )
 
     def _step(self, state: Gaussian, policy_map: GaussianMap) -> tuple[Gaussian, MomentMatch]:
         """x_t ~ N(μ, Σ) ↦ (x_{t+1}, moments of u_t), as PILCO's ``propagate`` (fused: Σ exactly symmetric)."""
-        if not fused():
+        if not self.engine.fused:
             return self._reference_step(state.expand(), policy_map)
         state = full_batch(state)
         mean, cov = state.mean, state.cov
-        feats = self.features.moments(state)  # y = φ(x); cross_cov = cov[x, y]
+        feats = self.features.moments(state, self.engine)  # y = φ(x); cross_cov = cov[x, y]
         act = policy_map(feats.output)  # u = π(y); cross_cov = cov[y, u]
         gp_in = _joint_input(feats, act)
         delta_mean, delta_cov, delta_gain = self.dynamics.mean_cov_gain(gp_in)  # Δ; gain = cov[y u]⁻¹ cov[[y u], Δ]
@@ -90,7 +93,7 @@ class MomentMatching:
     def _reference_step(self, state: Gaussian, policy_map: GaussianMap) -> tuple[Gaussian, MomentMatch]:
         """:meth:`_step`, reference formulation: symmetrized after each step."""
         mean, cov = state.mean, state.cov
-        feats = self.features.moments(state)  # y = φ(x); cross_cov = cov[x, y]
+        feats = self.features.moments(state, self.engine)  # y = φ(x); cross_cov = cov[x, y]
         act = policy_map(feats.output)  # u = π(y); cross_cov = cov[y, u]
         gp_in = _joint_input(feats, act)
         delta = self.dynamics(gp_in)  # Δ; gain = cov[y u]⁻¹ cov[[y u], Δ]
@@ -108,7 +111,7 @@ class MomentMatching:
         The fused step needs an exactly symmetric Σ (it keeps it so): the start's is symmetrized.
         """
         state = state.to(dtype=self.dtype)
-        if fused():
+        if self.engine.fused:
             state = Gaussian(state.mean, symmetrize(state.cov))
         if not self.policy.batch_shape:
             return state
@@ -117,7 +120,7 @@ class MomentMatching:
 
     def step(self, state: Gaussian) -> tuple[Gaussian, Gaussian]:
         """One step: the distribution of x_{t+1} and that of the action u_t."""
-        next_state, action = self._step(self._with_policy_batch(state), self.policy.prepare())
+        next_state, action = self._step(self._with_policy_batch(state), self.policy.prepare(self.engine))
         return next_state, action.output
 
     def rollout(self, start: Gaussian, horizon: int) -> Rollout:
@@ -130,7 +133,7 @@ class MomentMatching:
         if horizon < 1:
             raise ValueError(f"horizon must be >= 1, got {horizon}")
         start = self._with_policy_batch(start)
-        policy_map = self.policy.prepare()  # ψ-only quantities (β_π, ...) once per rollout
+        policy_map = self.policy.prepare(self.engine)  # ψ-only quantities (β_π, ...) once per rollout
         states, actions = [start], []
         state = start
         for _ in range(horizon):
@@ -140,7 +143,7 @@ class MomentMatching:
         trajectory = _stack_states(states)
         # The successors x_1..x_H are scored in one batched call, outside the recursion.
         successors = Gaussian(trajectory.mean[..., 1:, :], trajectory.cov[..., 1:, :, :])
-        rewards = self.reward.expected(successors)  # ... x H
+        rewards = self.reward.expected(successors, self.engine)  # ... x H
         return Rollout(
             value=rewards.sum(-1),
             rewards=rewards,

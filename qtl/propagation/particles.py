@@ -69,6 +69,7 @@ from torch import Tensor
 from qtl.errors import NonFiniteObjective, UserError
 from qtl.gaussian import Gaussian, matrix_root, sample_moments
 from qtl.kernels import gp_predictive
+from qtl.kernels.engine import DEFAULT_ENGINE, Engine
 from qtl.policies.base import Policy
 from qtl.propagation.base import DynamicsSource, Rollout
 from qtl.propagation.gp_cache import propagation_inputs
@@ -182,7 +183,8 @@ class Particles:
     reparameterised gradient (MC-PILCO's cart-pole starts with std 0.01; PILCO's task with 0.1).
     ``path_dtype``: ``float64`` (default) evaluates pathwise functions in the propagation's dtype, ``float32``
     in float32 and returns them in the propagation's (see the module docstring). ``seed``: of the base noise.
-    ``dtype``: of the propagation (default: the cache's); the policy must share it.
+    ``dtype``: of the propagation (default: the cache's); the policy must share it. ``engine``: the code of the
+    policy's actions, the pathwise functions and expected rewards (``qtl.build`` resolves it from ``kernels.*``).
     """
 
     @staticmethod
@@ -254,6 +256,7 @@ class Particles:
         search_start_scale: float = 1.0,
         seed: int = 0,
         dtype: torch.dtype | None = None,
+        engine: Engine = DEFAULT_ENGINE,
     ) -> None:
         self.check_settings(num_particles=num_particles, resample_every=resample_every, seed=seed,
                             sampling=sampling, num_features=num_features, reward_width_scale=reward_width_scale,
@@ -268,6 +271,7 @@ class Particles:
         data, self.features, self.dtype = propagation_inputs(model, policy, reward, angle_dims, dtype)
         self.state_dim = self.features.state_dim
         self.policy = policy
+        self.engine = engine  # the policy's and the pathwise functions' code (``qtl.build``: from kernels.*)
         self.reward = reward  # the task's: predictions and figures
         cost = None if search_cost == "widened" else task_search_cost
         self.search_reward = search_reward(reward, reward_width_scale, reward_task_weight, cost)
@@ -386,7 +390,7 @@ class Particles:
         if functions is not None and self.include_noise:
             noise_steps = self._noise_std[..., None, :] * step_noise.view(
                 horizon, *(1,) * (self._noise_std.dim() - 1), *step_noise.shape[1:])
-        act = self.policy.actions()  # ψ-only quantities once per rollout
+        act = self.policy.actions(self.engine)  # ψ-only quantities once per rollout
         for t in range(horizon):
             y = self.features(x)  # ... x P x (D + K), exact per particle
             u = act(y)  # ... x P x F
@@ -404,7 +408,8 @@ class Particles:
                 x = self._step(x, delta.mT)
             else:
                 step = path_values(z.to(self._eval_dtype), self._path_data, self._path_data_sq,
-                                   self._path_signal_variance, functions).to(self.dtype).mT  # f_p: ... x P x E
+                                   self._path_signal_variance, functions, self.engine)
+                step = step.to(self.dtype).mT  # f_p: ... x P x E
                 if self.expected_reward:
                     means.append(self._step(x, step))
                 if noise_steps is not None:  # the observation noise, independent per step, on top of f_p
@@ -444,7 +449,7 @@ class Particles:
         reward = reward or self.reward
         states, actions, predictive = self._paths(start, horizon, draw)
         if self.expected_reward:
-            per_particle = reward.expected(predictive)  # ... x P x H, E[r(x_t) | x_{t−1}]
+            per_particle = reward.expected(predictive, self.engine)  # ... x P x H, E[r(x_t) | x_{t−1}]
         else:
             per_particle = reward(states[..., 1:, :])  # ... x P x H, successor states x_1..x_H
         value = per_particle.sum(-1).mean(-1)

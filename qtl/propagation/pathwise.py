@@ -30,7 +30,7 @@ import torch
 from torch import Tensor
 from torch.autograd.function import FunctionCtx, once_differentiable
 
-from qtl.kernels.exp_sum import active_backend
+from qtl.kernels.engine import DEFAULT_ENGINE, Engine
 from qtl.kernels.gp_predictive import se_kernel_rows
 from qtl.kernels.native.pathwise import native_fits
 from qtl.kernels.native.pathwise import path_values as native_path_values
@@ -157,15 +157,16 @@ class _PathValues(torch.autograd.Function):
         return grad * grad_out[..., None], None, None, None, None
 
 
-def path_values(z: Tensor, data: Tensor, data_sq: Tensor, signal_variance: Tensor, paths: MatheronPaths) -> Tensor:
+def path_values(z: Tensor, data: Tensor, data_sq: Tensor, signal_variance: Tensor, paths: MatheronPaths,
+                engine: Engine = DEFAULT_ENGINE) -> Tensor:  # fmt: skip
     """The drawn functions at ``z`` `... x E x P x D` (one point per particle, over ℓ): `... x E x P`.
 
     ``data`` `... x E x n x D` and ``data_sq`` `... x E x n` as in :func:`~qtl.kernels.gp_predictive`;
     ``signal_variance`` α² `... x E`; ``paths`` from :func:`matheron_paths`. Differentiable in ``z``.
     CPU operands all float64 or all float32 take the compiled kernel (`qtl/kernels/native/pathwise.c`, one
-    body in both precisions) when the exp sums' backend is native (``qtl.kernels.use_backend``); everything
-    else the torch ``_PathValues`` (in the operands' dtype).
+    body in both precisions) when ``engine.exp_sums`` is ``native``; everything else the torch ``_PathValues``
+    (in the operands' dtype).
     """
-    if active_backend() == "native" and native_fits(z, data, signal_variance, *paths):
+    if engine.exp_sums == "native" and native_fits(z, data, signal_variance, *paths):
         return native_path_values(z, data, signal_variance, *paths)
     return _PathValues.apply(z, data, data_sq, signal_variance, paths)

@@ -10,7 +10,7 @@ import torch
 from omegaconf import OmegaConf
 from torch import Tensor
 
-from qtl.checkpoint import latest_checkpoint, load_checkpoint
+from qtl.checkpoint import run_checkpoint
 from qtl.data import TransitionDataset, gp_training_pairs
 from qtl.errors import CheckpointError, TaskError, TransferError
 from qtl.features import AngleFeatures
@@ -31,10 +31,14 @@ class SourceRun:
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> SourceRun:
-        """Read a source run directory (its last checkpoint); a clear error when it cannot serve as a source."""
+        """Read a source run directory (its last checkpoint); a clear error when it cannot serve as a source.
+
+        Its task is read from the configuration as the run stored it: the migration of old configs
+        (:func:`qtl.runs.read_run`) sits in the config's layer, above transfer, and touches only the group nodes.
+        """
         path = Path(path).expanduser().resolve()
         try:
-            checkpoint = load_checkpoint(latest_checkpoint(path))
+            checkpoint = run_checkpoint(path)
         except CheckpointError as err:
             raise TransferError(f"transfer.source={str(path)!r} is not a usable source run: {err}") from err
         try:

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import itertools
 import logging
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -13,9 +12,11 @@ from torch import Tensor
 
 from qtl.errors import UserError
 from qtl.gaussian import Gaussian
-from qtl.kernels import SEKernelMoments, exp_sum, weighted_exp_sum
+from qtl.kernels import SEKernelMoments, weighted_exp_sum
+from qtl.kernels import engine as engine_module
+from qtl.kernels.engine import Engine
 from qtl.kernels.native import exp_sum as native_exp_sum
-from qtl.kernels.native import library as native_library
+from qtl.kernels.native import loader
 
 DTYPE = torch.float64
 RTOL = 1e-12  # native vs torch, relative, float64
@@ -38,11 +39,18 @@ SMALL = ((2, 3), (2, 3), (3,), 5, 6)  # batches of A, B, W and n, m for the K sw
 WANTS = [want for want in itertools.product((True, False), repeat=3) if any(want)]
 
 
+NATIVE = Engine(exp_sums="native")
+
+
 @pytest.fixture
-def native(built: Path) -> Iterator[str]:
-    """The native backend in effect for one test."""
-    with exp_sum.backend("native") as name:
-        yield name
+def native(built: Path) -> Engine:
+    """The native exp sums (the library built)."""
+    return NATIVE
+
+
+def native_sum(a: Tensor, b: Tensor, w: Tensor) -> Tensor:
+    """:func:`weighted_exp_sum` by the native kernel."""
+    return weighted_exp_sum(a, b, w, engine=NATIVE)
 
 
 def operands(shape: tuple, seed: int, requires_grad: bool = False) -> tuple[Tensor, Tensor, Tensor]:
@@ -57,8 +65,7 @@ def operands(shape: tuple, seed: int, requires_grad: bool = False) -> tuple[Tens
 
 def with_grads(a: Tensor, b: Tensor, w: Tensor, name: str) -> tuple[Tensor, ...]:
     """The sums under backend ``name`` and the gradients of a weighted total w.r.t. those of A, B, W that need one."""
-    with exp_sum.backend(name):
-        value = weighted_exp_sum(a, b, w)
+    value = weighted_exp_sum(a, b, w, engine=Engine(exp_sums=name))
     probe = torch.linspace(0.5, 1.5, value.numel(), dtype=DTYPE).view(value.shape)
     wanted = tuple(t for t in (a, b, w) if t.requires_grad)
     return (value.detach(), *torch.autograd.grad((value * probe).sum(), wanted))
@@ -82,16 +89,15 @@ def test_torch_path_value_and_gradcheck():
     b = (0.3 * torch.randn(2, 3, 6, 4, generator=gen, dtype=DTYPE)).requires_grad_()
     w = torch.randn(3, 5, 6, generator=gen, dtype=DTYPE).requires_grad_()  # broadcast over dim 0
     expected = (w * torch.exp(a @ b.mT)).sum((-2, -1))
-    with exp_sum.backend("torch"):
-        # Whole matrix at once, and in blocks of 2 rows (the last block partial).
-        for rows in (5, 2):
-            torch.testing.assert_close(weighted_exp_sum(a, b, w, block_rows=rows), expected)
-            assert torch.autograd.gradcheck(lambda *t, r=rows: weighted_exp_sum(*t, block_rows=r), (a, b, w))
-        # A with a broadcast batch dimension; W with the full batch shape.
-        a1 = a[:1].detach().clone().requires_grad_()
-        assert torch.autograd.gradcheck(lambda *t: weighted_exp_sum(*t, block_rows=2), (a1, b, w))
-        w_full = w.detach().expand(2, -1, -1, -1).clone().requires_grad_()
-        assert torch.autograd.gradcheck(lambda *t: weighted_exp_sum(*t, block_rows=2), (a, b, w_full))
+    # The torch path (the default engine): whole matrix at once, and in blocks of 2 rows (the last block partial).
+    for rows in (5, 2):
+        torch.testing.assert_close(weighted_exp_sum(a, b, w, block_rows=rows), expected)
+        assert torch.autograd.gradcheck(lambda *t, r=rows: weighted_exp_sum(*t, block_rows=r), (a, b, w))
+    # A with a broadcast batch dimension; W with the full batch shape.
+    a1 = a[:1].detach().clone().requires_grad_()
+    assert torch.autograd.gradcheck(lambda *t: weighted_exp_sum(*t, block_rows=2), (a1, b, w))
+    w_full = w.detach().expand(2, -1, -1, -1).clone().requires_grad_()
+    assert torch.autograd.gradcheck(lambda *t: weighted_exp_sum(*t, block_rows=2), (a, b, w_full))
 
 
 @pytest.mark.parametrize(("shape", "seed"), [(s, i) for i, s in enumerate(SHAPES)])
@@ -123,7 +129,7 @@ def test_native_equals_torch_for_every_k(built, k):
 def test_native_gradcheck(native):
     for shape in [((2, 3), (2, 3), (3,), 5, 6, 4), ((1,), (2,), (), 3, 4, 2), ((), (), (), 259, 3, 1)]:
         a, b, w = operands(shape, 3, requires_grad=True)
-        assert torch.autograd.gradcheck(weighted_exp_sum, (a, b, w)), shape
+        assert torch.autograd.gradcheck(native_sum, (a, b, w)), shape
     # Only some operands need gradients. W fixed (the GP dynamics): the forward forms G_A and G_B,
     # across the row split (n = 259: two partial G_B added) and the column chunk (m = 513).
     fixed_w = [
@@ -134,16 +140,16 @@ def test_native_gradcheck(native):
     ]
     for shape, want in itertools.product(fixed_w, [(True, True, False), (True, False, False), (False, True, False)]):
         a, b, w = needing(want, *operands(shape, 4))
-        assert torch.autograd.gradcheck(weighted_exp_sum, (a, b, w)), (shape, want)
+        assert torch.autograd.gradcheck(native_sum, (a, b, w)), (shape, want)
     # W needs one and A or B not (backward recomputes exp(A Bᵀ)).
     for want in [(False, False, True), (True, False, True), (False, True, True)]:
         a, b, w = needing(want, *operands(((2, 3), (2, 3), (3,), 5, 6, 4), 5))
-        assert torch.autograd.gradcheck(weighted_exp_sum, (a, b, w)), want
+        assert torch.autograd.gradcheck(native_sum, (a, b, w)), want
 
 
 def test_native_forward_forms_the_a_b_gradients_only_when_w_is_fixed(native, monkeypatch):
     calls: list[tuple[str, tuple[bool, ...]]] = []
-    forward, backward = native_library.ExpSumLibrary.forward, native_library.ExpSumLibrary.backward
+    forward, backward = native_exp_sum.ExpSumLibrary.forward, native_exp_sum.ExpSumLibrary.backward
 
     def spy_forward(self, a, b, w, offsets, with_grads=(False, False)):
         calls.append(("forward", tuple(with_grads)))
@@ -153,8 +159,8 @@ def test_native_forward_forms_the_a_b_gradients_only_when_w_is_fixed(native, mon
         calls.append(("backward", tuple(needs)))
         return backward(self, a, b, w, offsets, grad, needs)
 
-    monkeypatch.setattr(native_library.ExpSumLibrary, "forward", spy_forward)
-    monkeypatch.setattr(native_library.ExpSumLibrary, "backward", spy_backward)
+    monkeypatch.setattr(native_exp_sum.ExpSumLibrary, "forward", spy_forward)
+    monkeypatch.setattr(native_exp_sum.ExpSumLibrary, "backward", spy_backward)
     base = operands(SHAPES[4], 10)
     expected = {
         (True, True, False): [("forward", (True, True))],
@@ -166,14 +172,14 @@ def test_native_forward_forms_the_a_b_gradients_only_when_w_is_fixed(native, mon
     for want, seen in expected.items():
         calls.clear()
         tensors = needing(want, *base)
-        torch.autograd.grad(weighted_exp_sum(*tensors).sum(), [t for t in tensors if t.requires_grad])
+        torch.autograd.grad(native_sum(*tensors).sum(), [t for t in tensors if t.requires_grad])
         assert calls == seen, want
     # No gradient wanted, or grad mode off: the plain sums, the same bits as with G_A, G_B.
     calls.clear()
-    fused = weighted_exp_sum(*needing((True, True, False), *base))
+    fused = native_sum(*needing((True, True, False), *base))
     with torch.no_grad():
-        off = weighted_exp_sum(*needing((True, True, False), *base))
-    plain = weighted_exp_sum(*base)
+        off = native_sum(*needing((True, True, False), *base))
+    plain = native_sum(*base)
     assert calls == [("forward", (True, True)), ("forward", (False, False)), ("forward", (False, False))]
     assert torch.equal(fused.detach(), off) and torch.equal(off, plain)
 
@@ -188,7 +194,7 @@ def test_native_is_bit_identical_across_calls_and_thread_counts(native, w_grad):
     try:
         for count in (1, 2, 2, 3):
             torch.set_num_threads(count)
-            value = weighted_exp_sum(a, b, w)
+            value = native_sum(a, b, w)
             results.append((value, *torch.autograd.grad((value * value.detach()).sum(), wanted)))
     finally:
         torch.set_num_threads(threads)
@@ -200,13 +206,13 @@ def test_native_does_not_copy_a_broadcast_w(native, monkeypatch):
     a, b, w = operands(SHAPES[2], 6)
     seen = []
 
-    def spy(self: native_library.ExpSumLibrary, *args: Tensor) -> Tensor:
+    def spy(self: native_exp_sum.ExpSumLibrary, *args: Tensor) -> Tensor:
         seen.append(args)
         raise StopIteration  # enough: the operands are what this test looks at
 
-    monkeypatch.setattr(native_library.ExpSumLibrary, "forward", spy)
+    monkeypatch.setattr(native_exp_sum.ExpSumLibrary, "forward", spy)
     with pytest.raises(StopIteration):
-        weighted_exp_sum(a, b, w)
+        native_sum(a, b, w)
     w_seen, offsets = seen[0][2], seen[0][3]
     assert w_seen.data_ptr() == w.data_ptr() and w_seen.stride()[0] == 0
     assert offsets[2].tolist() == [p * 33 * 33 for p in range(10)] * 2
@@ -216,17 +222,15 @@ def test_native_does_not_copy_a_broadcast_w(native, monkeypatch):
 
 def test_other_dtypes_take_the_torch_path(native):
     a, b, w = (t.float() for t in operands(SHAPES[1], 7))
-    with exp_sum.backend("torch"):
-        reference = weighted_exp_sum(a, b, w)
-    assert torch.equal(weighted_exp_sum(a, b, w), reference)
+    reference = weighted_exp_sum(a, b, w)
+    assert torch.equal(native_sum(a, b, w), reference)
 
 
 @pytest.mark.parametrize("backend", ["torch", "native"])
 def test_empty_sums_are_zero(built, backend):
     for n, m in [(0, 4), (4, 0)]:
         a, b, w = operands(((2,), (2,), (2,), n, m, 3), 8, requires_grad=True)
-        with exp_sum.backend(backend):
-            value = weighted_exp_sum(a, b, w)
+        value = weighted_exp_sum(a, b, w, engine=Engine(exp_sums=backend))
         assert torch.equal(value, torch.zeros(2, dtype=DTYPE))
         grads = torch.autograd.grad(value.sum(), (a, b, w), allow_unused=True)
         assert all(g is None or not g.any() for g in grads)
@@ -247,9 +251,9 @@ def test_moments_agree_across_backends(built, gp_factory, cov_factory):
     state = Gaussian(mean, cov_factory(6, 0.7, gen, batch=(2,)))
     results = {}
     for name in ("torch", "native"):
-        with exp_sum.backend(name):
-            moments = SEKernelMoments(cache.inputs, cache.beta, theta.lengthscales, theta.signal_variance, cache.K_inv)
-            out = moments(state)
+        moments = SEKernelMoments(cache.inputs, cache.beta, theta.lengthscales, theta.signal_variance, cache.K_inv,
+                                  engine=Engine(exp_sums=name))
+        out = moments(state)
         results[name] = (out.mean, out.cov, out.cross_cov, *torch.autograd.grad(out.cov.sum(), mean))
     names = ("mean", "cov", "cross_cov", "d cov/d mean")
     for got, want, what in zip(results["native"], results["torch"], names, strict=True):
@@ -257,41 +261,35 @@ def test_moments_agree_across_backends(built, gp_factory, cov_factory):
 
 
 def test_auto_falls_back_to_torch_and_says_so_once(monkeypatch, caplog, tmp_path):
-    monkeypatch.setattr(native_library, "artefact_path", lambda: tmp_path / "missing.so")
-    monkeypatch.setattr(exp_sum._STATE, "fallback_logged", False)
-    with caplog.at_level(logging.INFO, logger=exp_sum.__name__):
-        with exp_sum.backend("auto") as first:
-            assert first == "torch" == exp_sum.active_backend()
-        with exp_sum.backend("auto") as second:
-            assert second == "torch"
-    lines = [r.getMessage() for r in caplog.records if r.name == exp_sum.__name__]
-    assert len(lines) == 1 and "missing.so" in lines[0] and exp_sum.BUILD_COMMAND in lines[0]
+    monkeypatch.setattr(loader, "artefact_path", lambda: tmp_path / "missing.so")
+    engine_module._log_once.cache_clear()
+    with caplog.at_level(logging.INFO, logger=engine_module.__name__):
+        assert Engine.resolve("auto", "reference").exp_sums == "torch"
+        assert Engine.resolve("auto", "reference").exp_sums == "torch"
+    lines = [r.getMessage() for r in caplog.records if r.name == engine_module.__name__]
+    assert len(lines) == 1 and "missing.so" in lines[0] and engine_module.BUILD_COMMAND in lines[0]
 
 
 def test_auto_falls_back_when_the_library_does_not_load(monkeypatch, tmp_path):
     broken = tmp_path / "broken.so"
     broken.write_bytes(b"not a shared library")
-    monkeypatch.setattr(native_library, "artefact_path", lambda: broken)
-    monkeypatch.setattr(exp_sum._STATE, "fallback_logged", True)
-    with exp_sum.backend("auto") as name:
-        assert name == "torch"
+    monkeypatch.setattr(loader, "artefact_path", lambda: broken)
+    assert Engine.resolve("auto", "reference").exp_sums == "torch"
 
 
 def test_native_requested_but_missing_is_a_user_error(monkeypatch, tmp_path):
-    monkeypatch.setattr(native_library, "artefact_path", lambda: tmp_path / "missing.so")
-    before = exp_sum.active_backend()
+    monkeypatch.setattr(loader, "artefact_path", lambda: tmp_path / "missing.so")
     with pytest.raises(UserError, match=r"kernels.backend=native.*qtl.kernels.native.build"):
-        exp_sum.use_backend("native")
-    assert exp_sum.active_backend() == before
+        Engine.resolve("native", "reference")
     with pytest.raises(UserError, match="one of auto, native, torch"):
-        exp_sum.use_backend("fast")
+        Engine.resolve("fast", "reference")
 
 
-def test_backend_context_restores_the_previous_choice(built):
-    with exp_sum.backend("torch"):
-        with exp_sum.backend("native") as name:
-            assert name == exp_sum.active_backend() == "native"
-        assert exp_sum.active_backend() == "torch"
+def test_native_resolves_where_the_library_loads(built):
+    assert Engine.resolve("native", "reference") == Engine(exp_sums="native")
+    assert Engine.resolve("torch", "reference") == Engine()
+    with pytest.raises(ValueError, match=r"Engine\.exp_sums must be one of native, torch"):
+        Engine(exp_sums="auto")
 
 
 # The lower form (`qtl_exp_sum_forward_lower`, used by se_moments.c for its a = b pairs): when S = A Bᵀ is
@@ -312,7 +310,7 @@ def library_forward(a: Tensor, b: Tensor, w: Tensor, lower: Tensor | None = None
     """The library's sums, G_A and G_B for dense batches `items x ...` (items visited in order)."""
     batch = a.shape[:-2]
     offsets = (*(native_exp_sum.item_offsets(t, batch) for t in (a, b, w)), torch.arange(batch.numel()))
-    return native_library.load_exp_sum().forward(a, b, w, offsets, (True, True), lower)
+    return native_exp_sum.load_exp_sum().forward(a, b, w, offsets, (True, True), lower)
 
 
 def max_relative(got: Tensor, want: Tensor) -> float:

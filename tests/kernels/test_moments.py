@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 
 from qtl.gaussian import Gaussian
 from qtl.kernels import SEKernelMoments
-from qtl.kernels.formulation import FORMULATIONS, formulation
+from qtl.kernels.engine import DEFAULT_ENGINE, FORMULATIONS, Engine
 from qtl.kernels.moments import inverse_and_half_logdet
 from qtl.models import GPPosteriorCache
 from tests.test_features import assert_formulations_agree, assert_rel_close, random_state
@@ -20,16 +20,16 @@ DTYPE = torch.float64
 NUM_SAMPLES = 100_000
 
 
-@pytest.fixture(autouse=True, params=FORMULATIONS)
-def moments_formulation(request):
-    """Every test of this module under each formulation of the moments (a comparison sets its own)."""
-    with formulation(request.param):
-        yield request.param
+@pytest.fixture(params=FORMULATIONS)
+def engine(request) -> Engine:
+    """Each formulation of the moments in turn (torch exp sums)."""
+    return Engine(moments=request.param)
 
 
-def gp_moments(cache: GPPosteriorCache) -> SEKernelMoments:
+def gp_moments(cache: GPPosteriorCache, engine: Engine = DEFAULT_ENGINE) -> SEKernelMoments:
     theta = cache.hyperparameters
-    return SEKernelMoments(cache.inputs, cache.beta, theta.lengthscales, theta.signal_variance, cache.K_inv)
+    return SEKernelMoments(cache.inputs, cache.beta, theta.lengthscales, theta.signal_variance, cache.K_inv,
+                           engine=engine)
 
 
 @pytest.fixture(scope="module")
@@ -48,11 +48,11 @@ def test_posterior_reference_matches_dynamics_gp(model, posterior):
 
 
 @pytest.mark.parametrize("scale", [0.2, 1.0, 2.5])
-def test_gp_moments_against_monte_carlo(model, mc, posterior, cov_factory, scale):
+def test_gp_moments_against_monte_carlo(model, mc, posterior, cov_factory, scale, engine):
     cache = model.posterior_cache()
     gen = torch.Generator().manual_seed(int(10 * scale))
     state = Gaussian(0.5 * torch.randn(6, generator=gen, dtype=DTYPE), cov_factory(6, scale, gen))
-    result = gp_moments(cache)(state)
+    result = gp_moments(cache, engine)(state)
     x = state.sample(NUM_SAMPLES, generator=gen)
     mean, var = posterior(cache, x)
     # Law of total variance: cov Δ = cov(E[Δ | x]) + E[var(Δ | x)], the outputs independent given x.
@@ -60,26 +60,26 @@ def test_gp_moments_against_monte_carlo(model, mc, posterior, cov_factory, scale
     torch.testing.assert_close(state.cov @ result.gain, result.cross_cov)
 
 
-def test_delta_input_equals_gp_prediction(model):
+def test_delta_input_equals_gp_prediction(model, engine):
     x = torch.tensor([0.3, -0.2, 0.5, 0.1, -0.7, 0.4], dtype=DTYPE)
-    result = gp_moments(model.posterior_cache())(Gaussian(x, torch.zeros(6, 6, dtype=DTYPE)))
+    result = gp_moments(model.posterior_cache(), engine)(Gaussian(x, torch.zeros(6, 6, dtype=DTYPE)))
     ref_mean, ref_var = model.predict(x[None])
     torch.testing.assert_close(result.mean, ref_mean[0])
     torch.testing.assert_close(result.cov, torch.diag(ref_var[0]), atol=1e-12, rtol=0)
 
 
-def test_without_model_variance_is_the_regressor_mean(model):
+def test_without_model_variance_is_the_regressor_mean(model, engine):
     # gp2: a delta input gives f(x) and zero covariance.
     cache = model.posterior_cache()
     theta = cache.hyperparameters
-    moments = SEKernelMoments(cache.inputs, cache.beta, theta.lengthscales, theta.signal_variance)
+    moments = SEKernelMoments(cache.inputs, cache.beta, theta.lengthscales, theta.signal_variance, engine=engine)
     x = torch.tensor([0.3, -0.2, 0.5, 0.1, -0.7, 0.4], dtype=DTYPE)
     result = moments(Gaussian(x, torch.zeros(6, 6, dtype=DTYPE)))
     torch.testing.assert_close(result.mean, model.predict(x[None])[0][0])
     assert result.cov.abs().max() < 1e-12
 
 
-def test_batched_states_and_stacked_models(gp_factory, cov_factory):
+def test_batched_states_and_stacked_models(gp_factory, cov_factory, engine):
     models = [gp_factory(25, 2, 1, seed=s) for s in (1, 2)]
     caches = [m.posterior_cache() for m in models]
     stacked = SEKernelMoments(
@@ -88,6 +88,7 @@ def test_batched_states_and_stacked_models(gp_factory, cov_factory):
         torch.stack([c.hyperparameters.lengthscales for c in caches]),
         torch.stack([c.hyperparameters.signal_variance for c in caches]),
         torch.stack([c.K_inv for c in caches]),
+        engine=engine,
     )
     gen = torch.Generator().manual_seed(3)
     means = torch.randn(4, 1, 3, generator=gen, dtype=DTYPE)  # 4 states x 2 models
@@ -95,15 +96,15 @@ def test_batched_states_and_stacked_models(gp_factory, cov_factory):
     batched = stacked(Gaussian(means, covs))
     assert batched.cov.shape == (4, 2, 2, 2)
     for i, j in itertools.product(range(4), range(2)):
-        single = gp_moments(caches[j])(Gaussian(means[i, 0], covs[i, 0]))
+        single = gp_moments(caches[j], engine)(Gaussian(means[i, 0], covs[i, 0]))
         torch.testing.assert_close(batched.mean[i, j], single.mean)
         torch.testing.assert_close(batched.cov[i, j], single.cov)
         torch.testing.assert_close(batched.cross_cov[i, j], single.cross_cov)
 
 
-def test_gradcheck_wrt_input_distribution(gp_factory):
+def test_gradcheck_wrt_input_distribution(gp_factory, engine):
     cache = gp_factory(8, 2, 1, seed=4).posterior_cache()
-    moments = gp_moments(cache)
+    moments = gp_moments(cache, engine)
     gen = torch.Generator().manual_seed(5)
     mean = torch.randn(3, generator=gen, dtype=DTYPE).requires_grad_()
     root = (0.5 * torch.randn(3, 3, generator=gen, dtype=DTYPE)).requires_grad_()
@@ -115,12 +116,13 @@ def test_gradcheck_wrt_input_distribution(gp_factory):
     assert torch.autograd.gradcheck(fn, (mean, root))
 
 
+@pytest.mark.parametrize("moments", FORMULATIONS)
 @settings(max_examples=25, deadline=None)
 @given(seed=st.integers(0, 2**31 - 1), scale=st.floats(1e-3, 5.0), shift=st.floats(0.0, 4.0))
-def test_covariance_is_psd(model, psd, cov_factory, seed, scale, shift):
+def test_covariance_is_psd(model, psd, cov_factory, seed, scale, shift, moments):
     gen = torch.Generator().manual_seed(seed)
     state = Gaussian(shift * torch.randn(6, generator=gen, dtype=DTYPE), cov_factory(6, scale, gen))
-    result = gp_moments(model.posterior_cache())(state)
+    result = gp_moments(model.posterior_cache(), Engine(moments=moments))(state)
     psd(result.cov)
     joint = torch.cat(
         [torch.cat([state.cov, result.cross_cov], -1), torch.cat([result.cross_cov.T, result.cov], -1)],
@@ -129,7 +131,7 @@ def test_covariance_is_psd(model, psd, cov_factory, seed, scale, shift):
     psd(joint)
 
 
-# --- The fused formulation against the reference one (qtl.kernels.formulation), values and gradients. ---
+# --- The fused formulation against the reference one (qtl.kernels.Engine), values and gradients. ---
 
 
 def regressor_tensors(caches, requires_grad: bool) -> dict[str, torch.Tensor]:
@@ -160,16 +162,16 @@ def test_formulations_agree(gp_factory, models, state_batch, with_variance):
     K_inv = tensors.pop("K_inv") if with_variance else None
     mean, root = random_state(5, state_batch, seed=models + len(state_batch))
 
-    def moments(m, r, *params):
-        out = SEKernelMoments(*params, K_inv=K_inv)(Gaussian(m, r @ r.mT))
+    def moments(engine, m, r, *params):
+        out = SEKernelMoments(*params, K_inv=K_inv, engine=engine)(Gaussian(m, r @ r.mT))
         return out.mean, out.cov, out.cross_cov, out.gain
 
     params = tuple(tensors[k] for k in ("inputs", "beta", "lengthscales", "signal_variance"))
     assert_formulations_agree(moments, (mean, root, *params))
 
 
-def test_mean_cov_gain_is_call_without_cross_cov(model):
-    moments = gp_moments(model.posterior_cache())
+def test_mean_cov_gain_is_call_without_cross_cov(model, engine):
+    moments = gp_moments(model.posterior_cache(), engine)
     state = Gaussian(torch.linspace(-1, 1, 6, dtype=DTYPE), 0.3 * torch.eye(6, dtype=DTYPE))
     full = moments(state)
     for got, want in zip(moments.mean_cov_gain(state), (full.mean, full.cov, full.gain), strict=True):

@@ -9,18 +9,19 @@ import pytest
 
 from qtl.kernels.native import artefact
 from qtl.kernels.native import build as native_build
-from qtl.kernels.native.library import ExpSumLibrary
+from qtl.kernels.native.exp_sum import ExpSumLibrary
+from qtl.kernels.native.loader import open_library
 
 
 def test_a_second_build_is_a_cache_hit(built):
     stamp = built.stat().st_mtime_ns
     assert native_build.build() == built
     assert built.stat().st_mtime_ns == stamp
-    assert built.parent == artefact.SOURCE.parent and built.name.startswith(artefact.ARTEFACT_PREFIX)
+    assert built.parent == artefact.DIRECTORY and built.name.startswith(artefact.ARTEFACT_PREFIX)
 
 
 def test_the_cache_key_follows_source_flags_and_cpu(monkeypatch, tmp_path):
-    key, original = artefact.cache_key(), artefact.SOURCE
+    key, original = artefact.cache_key(), artefact.DIRECTORY / "exp_sum.c"
     source = tmp_path / "exp_sum.c"
     shutil.copy(original, source)
     monkeypatch.setattr(artefact, "SOURCES", tuple(source if s == original else s for s in artefact.SOURCES))
@@ -59,4 +60,4 @@ def test_narrower_vector_builds_agree_with_torch(built, isa, monkeypatch, tmp_pa
     monkeypatch.setattr(native_build, "FLAGS", NARROWER[isa](native_build.FLAGS))
     target = tmp_path / f"exp_sum_{isa}.so"
     native_build.compile_kernel(target)
-    native_build.check_against_torch(ExpSumLibrary(target))  # raises BuildError when it disagrees
+    native_build.check_against_torch(ExpSumLibrary(open_library(target)))  # raises BuildError when it disagrees

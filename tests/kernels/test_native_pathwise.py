@@ -10,7 +10,7 @@ import torch
 from torch import Tensor
 
 from qtl.gaussian import Gaussian
-from qtl.kernels.exp_sum import backend
+from qtl.kernels.engine import Engine
 from qtl.kernels.native import pathwise as native_pathwise
 from qtl.kernels.native.pathwise import NativePathValues, check_against_torch, load_path_values
 from qtl.policies import RBFPolicy, SquashedPolicy
@@ -161,10 +161,8 @@ def test_path_values_dispatch_native_for_float64_and_float32(library, monkeypatc
     for dtype in (torch.float32, DTYPE):
         z, data, data_sq, signal_variance, paths = make_problem((2,), (), 2, 5, 6, 7, 3, seed=9, dtype=dtype)
         operands = (data, data_sq, signal_variance, paths)
-        with backend("native"):
-            got = values_and_grad(lambda z, operands=operands: path_values(z, *operands), z)
-        with backend("torch"):
-            want = values_and_grad(lambda z, operands=operands: path_values(z, *operands), z)
+        got = values_and_grad(lambda z, operands=operands: path_values(z, *operands, Engine(exp_sums="native")), z)
+        want = values_and_grad(lambda z, operands=operands: path_values(z, *operands, Engine()), z)
         for g, w in zip(got, want, strict=True):
             assert g.dtype == dtype
             assert_rel_close(g, w, F32_RTOL if dtype == torch.float32 else RTOL)
@@ -277,16 +275,10 @@ def test_particle_rollout_equal_between_backends(library, gp_factory, monkeypatc
         RBFPolicy(4, 1, 8, targets=torch.randn(8, 1, generator=gen, dtype=DTYPE), generator=gen), 2.0
     )
     model = [g.posterior_cache() for g in gps] if stacked else gps[0]
-    particles = Particles(
-        model,
-        policy,
-        quadratic_reward(3, (1,)),
-        angle_dims=(1,),
-        sampling="pathwise",
-        num_particles=24,
-        num_features=50,
-        seed=3,
-    )
+    def particles(engine: Engine) -> Particles:
+        return Particles(model, policy, quadratic_reward(3, (1,)), angle_dims=(1,), sampling="pathwise",
+                         num_particles=24, num_features=50, seed=3, engine=engine)
+
     mean = torch.tensor([0.1, 2.5, -0.3], dtype=DTYPE)
     if stacked:
         mean = mean + 0.2 * torch.randn(2, 1, 3, generator=gen, dtype=DTYPE)
@@ -296,8 +288,7 @@ def test_particle_rollout_equal_between_backends(library, gp_factory, monkeypatc
     monkeypatch.setattr(NativePathValues, "apply", lambda *args: calls.append(1) or apply(*args))
     results = {}
     for name in ("native", "torch"):
-        with backend(name):
-            results[name] = rollout_value_and_grads(particles, policy, start, 6)
+        results[name] = rollout_value_and_grads(particles(Engine(exp_sums=name)), policy, start, 6)
     assert len(calls) == 6  # the native backend took the kernel at every step, the torch backend never
     (v_native, g_native), (v_torch, g_torch) = results["native"], results["torch"]
     assert v_native.shape == ((2, 2) if stacked else ())

@@ -6,11 +6,11 @@ import pytest
 import torch
 from torch import Tensor
 
-from qtl.kernels.formulation import formulation
+from qtl.kernels.engine import Engine
 from qtl.kernels.native import rbf_network as native_network
 from qtl.kernels.native.rbf_network import NativeNetworkValues, check_against_torch, load_network
 from qtl.policies import RBFNetwork
-from qtl.policies.rbf_network import _NetworkValues, network_form
+from qtl.policies.rbf_network import _NetworkValues
 
 DTYPE = torch.float64
 # The compiled op and the torch ones differ only in the order of floating-point operations.
@@ -97,13 +97,12 @@ def test_the_network_takes_the_compiled_op_under_native_and_the_same_masks(built
     results = []
     for form in ("auto", "fused"):
         net.set_dropout(rate, torch.Generator().manual_seed(8))
-        with formulation("native"), network_form(form):
-            actions = net(x)
+        actions = net(x, Engine(moments="native", network=form))
         results.append((actions, *torch.autograd.grad(actions.sum(), list(net.parameters()))))
         names = actions.grad_fn.name() + " " + actions.grad_fn.next_functions[0][0].name()
         assert ("NativeNetworkValuesBackward" in names) == (form == "auto")
     for native, fused in zip(*results, strict=True):
         torch.testing.assert_close(native, fused, rtol=1e-10, atol=1e-12)
-    with formulation("native"):  # float32 points: the fused torch op
-        net32 = RBFNetwork(*(p.detach().float() for p in (net.centres, net.weights)), torch.full((1, 5), 0.8))
-        assert "NativeNetworkValues" not in net32(x.float()).grad_fn.next_functions[0][0].name()
+    # float32 points: the fused torch op
+    net32 = RBFNetwork(*(p.detach().float() for p in (net.centres, net.weights)), torch.full((1, 5), 0.8))
+    assert "NativeNetworkValues" not in net32(x.float(), Engine(moments="native")).grad_fn.next_functions[0][0].name()

@@ -8,7 +8,7 @@ from torch.utils._python_dispatch import TorchDispatchMode
 
 from qtl.gaussian import Gaussian
 from qtl.kernels import SEKernelMoments
-from qtl.kernels.formulation import formulation
+from qtl.kernels.engine import Engine
 from qtl.kernels.native import build as native_build
 from qtl.kernels.native import se_moments, se_moments_check
 from qtl.kernels.native.se_moments import NativeSEKernelMoments, load_se_moments
@@ -49,15 +49,19 @@ def make_problem(
     return {k: v.requires_grad_() for k, v in leaves.items()}, 0.1 * k_root @ k_root.mT / num
 
 
+FUSED, NATIVE = Engine(moments="fused"), Engine(moments="native")
+# The native moments with every pair's full n x n exp sum (the form before the lower sums).
+FULL_PAIRS = Engine(moments="native", lower_pairs=False)
+
+
 def outputs_and_grads(
-    leaves: dict[str, torch.Tensor], k_inv: torch.Tensor | None, name: str, probes: list[torch.Tensor] | None
+    leaves: dict[str, torch.Tensor], k_inv: torch.Tensor | None, engine: Engine, probes: list[torch.Tensor] | None
 ) -> tuple[list[torch.Tensor], list[torch.Tensor | None]]:
-    """(mean, cov, gain) of `_fused_call` under formulation ``name``, and the gradients of Σ probe·output."""
+    """(mean, cov, gain) of `_fused_call` by ``engine``, and the gradients of Σ probe·output."""
     moments = SEKernelMoments(
         leaves["inputs"], leaves["beta"], leaves["lengthscales"], leaves["signal_variance"], k_inv
     )
-    with formulation(name):
-        outs = list(moments._fused_call(leaves["mean"], leaves["cov"]))
+    outs = list(moments._fused_call(leaves["mean"], leaves["cov"], engine))
     if probes is None:  # plain sums and a transposed view: expanded and strided output gradients
         loss = outs[0].sum() + (outs[1].mT * outs[1].detach()).sum() + outs[2].mT[..., 0, :].sum()
     else:
@@ -68,17 +72,16 @@ def outputs_and_grads(
 
 def assert_native_equals_fused(leaves, k_inv, seed: int = 0, probes: bool = True) -> None:
     """Values and gradients of every leaf that needs one: native equal to fused to RTOL (relative to the max)."""
-    with formulation("fused"):
-        shapes = [
-            o.shape
-            for o in SEKernelMoments(
-                leaves["inputs"], leaves["beta"], leaves["lengthscales"], leaves["signal_variance"], k_inv
-            )._fused_call(leaves["mean"], leaves["cov"])
-        ]
+    shapes = [
+        o.shape
+        for o in SEKernelMoments(
+            leaves["inputs"], leaves["beta"], leaves["lengthscales"], leaves["signal_variance"], k_inv
+        )._fused_call(leaves["mean"], leaves["cov"], FUSED)
+    ]
     gen = torch.Generator().manual_seed(seed)
     weights = [torch.randn(s, generator=gen, dtype=DTYPE) for s in shapes] if probes else None
-    want_out, want_grads = outputs_and_grads(leaves, k_inv, "fused", weights)
-    got_out, got_grads = outputs_and_grads(leaves, k_inv, "native", weights)
+    want_out, want_grads = outputs_and_grads(leaves, k_inv, FUSED, weights)
+    got_out, got_grads = outputs_and_grads(leaves, k_inv, NATIVE, weights)
     for what, got, want in zip(("mean", "cov", "gain"), got_out, want_out, strict=True):
         assert_rel_close(got, want, what, rtol=RTOL)
     names = [k for k, v in leaves.items() if v.requires_grad]
@@ -133,9 +136,8 @@ def test_expanded_and_transposed_operands(library):
     mean, cov = leaves["mean"].expand(4, 3), leaves["cov"].mT.expand(4, 3, 3)
     moments = SEKernelMoments(leaves["inputs"], leaves["beta"], leaves["lengthscales"], leaves["signal_variance"])
     results = []
-    for name in ("fused", "native"):
-        with formulation(name):
-            outs = moments._fused_call(mean, cov)
+    for engine in (FUSED, NATIVE):
+        outs = moments._fused_call(mean, cov, engine)
         loss = sum((o * (i + 1.5)).square().sum() for i, o in enumerate(outs))
         results.append((*outs, *torch.autograd.grad(loss, list(leaves.values()), retain_graph=True)))
     for what, got, want in zip(("mean", "cov", "gain", *NAMES), results[1], results[0], strict=True):
@@ -153,17 +155,18 @@ def test_native_path_is_taken_only_for_float64_cpu(library, monkeypatch):
     monkeypatch.setattr(se_moments.NativeSEKernelMoments, "apply", spy)
     leaves, _ = make_problem(2, 3, 6, (2,), (), seed=5)
     single = {k: v.detach().float() for k, v in leaves.items()}
-    moments64 = SEKernelMoments(leaves["inputs"], leaves["beta"], leaves["lengthscales"], leaves["signal_variance"])
-    moments32 = SEKernelMoments(single["inputs"], single["beta"], single["lengthscales"], single["signal_variance"])
     state32 = Gaussian(single["mean"], single["cov"])
-    with formulation("native"):
-        got32 = moments32(state32)
-        assert calls == []  # float32 takes the fused torch code
+    results32 = []
+    for engine in (NATIVE, FUSED):
+        moments64 = SEKernelMoments(leaves["inputs"], leaves["beta"], leaves["lengthscales"], leaves["signal_variance"],
+                                    engine=engine)
+        moments32 = SEKernelMoments(single["inputs"], single["beta"], single["lengthscales"], single["signal_variance"],
+                                    engine=engine)
+        results32.append(moments32(state32))
+        assert calls == ([] if engine is NATIVE else [DTYPE])  # float32 takes the fused torch code
         moments64(Gaussian(leaves["mean"], leaves["cov"]))
         assert calls == [DTYPE]
-    with formulation("fused"):
-        want32 = moments32(state32)
-        moments64(Gaussian(leaves["mean"], leaves["cov"]))
+    got32, want32 = results32
     assert calls == [DTYPE]  # fused never takes it
     for got, want in zip((got32.mean, got32.cov, got32.gain), (want32.mean, want32.cov, want32.gain), strict=True):
         assert got.dtype == torch.float32 and torch.equal(got, want)
@@ -182,7 +185,7 @@ def test_gradcheck_all_operands(library):
     operands += [moments.log_sf2.detach().clone().requires_grad_(), moments.weights.detach().clone().requires_grad_()]
 
     def fn(mean, cov, *ops):  # Σ symmetric, as the formula (and its symmetrized gradient) assumes
-        return NativeSEKernelMoments.apply(mean, 0.5 * (cov + cov.mT), *ops, library, torch.is_grad_enabled())
+        return NativeSEKernelMoments.apply(mean, 0.5 * (cov + cov.mT), *ops, library, torch.is_grad_enabled(), True)
 
     assert torch.autograd.gradcheck(fn, tuple(operands), eps=1e-6, atol=1e-8, rtol=1e-6)
 
@@ -201,7 +204,7 @@ def test_gradcheck_with_constant_weights(library):
 
     def fn(mean, cov, inputs, inv_ls, log_sf2):
         cov = 0.5 * (cov + cov.mT)
-        return NativeSEKernelMoments.apply(mean, cov, inputs, beta, inv_ls, log_sf2, weights, library, True)
+        return NativeSEKernelMoments.apply(mean, cov, inputs, beta, inv_ls, log_sf2, weights, library, True, True)
 
     assert torch.autograd.gradcheck(fn, (mean, cov, inputs, inv_ls, log_sf2), eps=1e-6, atol=1e-8, rtol=1e-6)
 
@@ -210,9 +213,9 @@ def test_not_positive_definite_raises_like_cholesky(library):
     leaves, _ = make_problem(2, 3, 4, (), (), seed=13)
     moments = SEKernelMoments(leaves["inputs"], leaves["beta"], leaves["lengthscales"], leaves["signal_variance"])
     cov = -torch.eye(3, dtype=DTYPE)
-    for name in ("fused", "native"):
-        with formulation(name), pytest.raises(torch.linalg.LinAlgError):
-            moments._fused_call(leaves["mean"].detach(), cov)
+    for engine in (FUSED, NATIVE):
+        with pytest.raises(torch.linalg.LinAlgError):
+            moments._fused_call(leaves["mean"].detach(), cov, engine)
 
 
 class _OpCounter(TorchDispatchMode):
@@ -227,10 +230,10 @@ class _OpCounter(TorchDispatchMode):
         return func(*args, **(kwargs or {}))
 
 
-def count_ops(moments: SEKernelMoments, mean: torch.Tensor, cov: torch.Tensor) -> tuple[int, int]:
-    """Dispatched operations of one ``_fused_call``: forward, and backward from given output gradients."""
+def count_ops(moments: SEKernelMoments, mean: torch.Tensor, cov: torch.Tensor, engine: Engine) -> tuple[int, int]:
+    """Dispatched operations of one ``_fused_call`` by ``engine``: forward, and backward from given output gradients."""
     with _OpCounter() as forward:
-        outs = moments._fused_call(mean, cov)
+        outs = moments._fused_call(mean, cov, engine)
     grads = [torch.ones_like(o) for o in outs]
     leaves = [t for t in (mean, cov) if t.requires_grad]
     with _OpCounter() as backward:
@@ -253,10 +256,8 @@ def test_one_call_dispatches_a_handful_of_ops(library, with_k_inv):
         leaves["signal_variance"],
         k_inv if with_k_inv else None,
     )
-    with formulation("fused"):
-        fused_counts = count_ops(moments, leaves["mean"], leaves["cov"])
-    with formulation("native"):
-        native_counts = count_ops(moments, leaves["mean"], leaves["cov"])
+    fused_counts = count_ops(moments, leaves["mean"], leaves["cov"], FUSED)
+    native_counts = count_ops(moments, leaves["mean"], leaves["cov"], NATIVE)
     assert native_counts[0] <= 6 and native_counts[1] <= 6, native_counts
     assert fused_counts[0] > 5 * native_counts[0] and fused_counts[1] > 5 * native_counts[1], fused_counts
 
@@ -278,7 +279,10 @@ def test_rollout_native_equals_fused(library, gp_factory, restarts, models):
     policy = make_policy("rbf", 4)
     if restarts > 1:
         policy = spread_restarts(policy, restarts)
-    propagator = MomentMatching(model, policy, quadratic_reward(3, (1,)), angle_dims=(1,), include_noise=True)
+    def propagator(engine: Engine) -> MomentMatching:
+        return MomentMatching(model, policy, quadratic_reward(3, (1,)), angle_dims=(1,), include_noise=True,
+                              engine=engine)
+
     gen = torch.Generator().manual_seed(10 * restarts + models)
     start = random_start(models, gen)
     psi = list(policy.parameters())
@@ -289,12 +293,10 @@ def test_rollout_native_equals_fused(library, gp_factory, restarts, models):
         calls.append(1)
         return original(*args)
 
-    with formulation("fused"):
-        fused = propagator.expected_return(start, 5)
-    with formulation("native"):
-        with pytest.MonkeyPatch.context() as patch:
-            patch.setattr(se_moments.NativeSEKernelMoments, "apply", spy)
-            native = propagator.expected_return(start, 5)
+    fused = propagator(FUSED).expected_return(start, 5)
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(se_moments.NativeSEKernelMoments, "apply", spy)
+        native = propagator(NATIVE).expected_return(start, 5)
     assert len(calls) == 2 * 5  # policy and dynamics, every step
     assert native.shape == fused.shape == ((restarts,) if restarts > 1 else (models,) if models > 1 else ())
     assert_rel_close(native, fused, "V", rtol=ROLLOUT_RTOL)
@@ -306,9 +308,9 @@ def test_rollout_native_equals_fused(library, gp_factory, restarts, models):
         assert_rel_close(g, w, "∂V/∂ψ", rtol=ROLLOUT_RTOL)
 
 
-def native_outputs_and_grads(leaves, k_inv, probes) -> list[torch.Tensor]:
+def native_outputs_and_grads(leaves, k_inv, probes, engine: Engine = NATIVE) -> list[torch.Tensor]:
     """(mean, cov, gain) of the native moments and the gradients of Σ probe·output for every leaf that needs one."""
-    outs, grads = outputs_and_grads(leaves, k_inv, "native", probes)
+    outs, grads = outputs_and_grads(leaves, k_inv, engine, probes)
     return [*outs, *grads]
 
 
@@ -319,12 +321,10 @@ def test_lower_pair_sums_equal_the_full_sums(library, num_out, dim, num, state_b
     leaves, k_inv = make_problem(num_out, dim, num, state_batch, const_batch, seed=3 * num + dim)
     leaves["beta"].requires_grad_(weights_grad)  # β enters the weights: with it, backward recomputes the sums
     gen = torch.Generator().manual_seed(num)
-    with formulation("native"):
-        shapes = [o.shape for o in outputs_and_grads(leaves, k_inv, "native", None)[0]]
+    shapes = [o.shape for o in outputs_and_grads(leaves, k_inv, NATIVE, None)[0]]
     probes = [torch.randn(s, generator=gen, dtype=DTYPE) for s in shapes]
     lower = native_outputs_and_grads(leaves, k_inv, probes)
-    with se_moments.full_pairs():
-        full = native_outputs_and_grads(leaves, k_inv, probes)
+    full = native_outputs_and_grads(leaves, k_inv, probes, FULL_PAIRS)
     assert len(lower) == len(full) == 3 + 5 + weights_grad
     for i, (got, want) in enumerate(zip(lower, full, strict=True)):
         assert_rel_close(got, want, f"output or gradient {i}", rtol=RTOL)
@@ -334,15 +334,12 @@ def test_rollout_lower_pair_sums_equal_the_full_sums(library, gp_factory):
     """V and ∂V/∂ψ of a rollout on a 4-output GP with n = 300 (the sparse GP's size), restarts in lockstep."""
     gp = gp_factory(300, 4, 1, (1,), seed=5)
     policy = spread_restarts(make_policy("rbf", 5), 2)  # features: 4 states, the angle as sin and cos
-    propagator = MomentMatching(gp, policy, quadratic_reward(4, (1,)), angle_dims=(1,))
     gen = torch.Generator().manual_seed(6)
     root = 0.3 * torch.randn(4, 4, generator=gen, dtype=DTYPE)
     start = Gaussian(0.3 * torch.randn(4, generator=gen, dtype=DTYPE), root @ root.T + 0.01 * torch.eye(4, dtype=DTYPE))
     psi = list(policy.parameters())
-    with formulation("native"):
-        lower = propagator.expected_return(start, 4)
-        with se_moments.full_pairs():
-            full = propagator.expected_return(start, 4)
+    lower, full = (MomentMatching(gp, policy, quadratic_reward(4, (1,)), angle_dims=(1,), engine=engine)
+                   .expected_return(start, 4) for engine in (NATIVE, FULL_PAIRS))
     assert_rel_close(lower, full, "V", rtol=ROLLOUT_RTOL)
     for p, got, want in zip(psi, torch.autograd.grad(lower.sum(), psi), torch.autograd.grad(full.sum(), psi),
                             strict=True):

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -11,8 +10,8 @@ from torch import Tensor
 
 from qtl.features import AngleFeatures
 from qtl.gaussian import Gaussian, MomentMatch, symmetrize
-from qtl.kernels.formulation import formulation
-from qtl.kernels.native import trig_moments as native_trig
+from qtl.kernels.engine import Engine
+from qtl.kernels.native import trig as native_trig
 from qtl.policies import LinearPolicy, SquashedPolicy, sin_squash_moments
 from qtl.policies.squash import _squash_terms, _SquashWeights
 from qtl.propagation import MomentMatching
@@ -46,10 +45,9 @@ SQUASH_SHAPES = [
 
 
 @pytest.fixture
-def native(built: Path) -> Iterator[str]:
-    """The native formulation in effect for one test."""
-    with formulation("native") as name:
-        yield name
+def native(built: Path) -> Engine:
+    """The native formulation (the library built)."""
+    return Engine(moments="native")
 
 
 def gaussian(dim: int, batch_mean: tuple, batch_cov: tuple, seed: int, scale: float = 0.7) -> tuple[Tensor, Tensor]:
@@ -84,8 +82,7 @@ def assert_same_with_grads(native: tuple[Tensor, ...], fused: tuple[Tensor, ...]
 
 def feature_moments(features: AngleFeatures, mean: Tensor, cov: Tensor, name: str) -> tuple[Tensor, ...]:
     """:meth:`AngleFeatures.moments` under formulation ``name``, as a tuple."""
-    with formulation(name):
-        out = features.moments(Gaussian(mean, cov))
+    out = features.moments(Gaussian(mean, cov), Engine(moments=name))
     return out.mean, out.cov, out.cross_cov, out.gain
 
 
@@ -118,7 +115,7 @@ def test_angle_features_cov_gradient_keeps_the_fused_convention(built):
 
 def test_angle_features_without_angles_are_the_identity(native):
     mean, cov = gaussian(3, (2,), (2,), seed=0)
-    out = AngleFeatures(3).moments(Gaussian(mean, cov))
+    out = AngleFeatures(3).moments(Gaussian(mean, cov), native)
     assert out.mean is mean and out.cov is cov and torch.equal(out.gain, torch.eye(3, dtype=DTYPE).expand(2, 3, 3))
 
 
@@ -126,8 +123,7 @@ def squash_terms(mean: Tensor, cov: Tensor, bound: Tensor, name: str) -> tuple[T
     """(mean, symmetrized cov, slope `... x 1 x F`) of the squashing under formulation ``name``."""
     if name == "native":
         return native_trig.sin_squash_terms(mean, cov, bound)
-    with formulation(name):
-        out_mean, out_cov, slope = _squash_terms(mean, cov, _SquashWeights.of(bound))
+    out_mean, out_cov, slope = _squash_terms(mean, cov, _SquashWeights.of(bound))
     return out_mean, symmetrize(out_cov), slope[..., None, :]
 
 
@@ -148,8 +144,7 @@ def test_sin_squash_moments_and_the_squashed_policy_equal_the_fused_code(built, 
     bound = torch.tensor([1.0, 2.5], dtype=DTYPE)
 
     def moments(name: str) -> tuple[Tensor, ...]:
-        with formulation(name):
-            out = sin_squash_moments(Gaussian(mean, cov_in), bound)
+        out = sin_squash_moments(Gaussian(mean, cov_in), bound, Engine(moments=name))
         return out.mean, out.cov, out.cross_cov, out.gain
 
     assert_same_with_grads(moments("native"), moments("fused"), (mean, cov_in))
@@ -158,8 +153,7 @@ def test_sin_squash_moments_and_the_squashed_policy_equal_the_fused_code(built, 
     x_mean, x_cov = gaussian(3, (), (), seed=6)
 
     def prepared(name: str) -> tuple[Tensor, ...]:
-        with formulation(name):
-            out: MomentMatch = policy.prepare()(Gaussian(x_mean, x_cov))
+        out: MomentMatch = policy.prepare(Engine(moments=name))(Gaussian(x_mean, x_cov))
         return out.mean, out.cov, out.cross_cov, out.gain
 
     native = prepared("native")
@@ -192,12 +186,12 @@ def test_other_dtypes_take_the_torch_path(native, monkeypatch):
     monkeypatch.setattr(native_trig.NativeSinSquash, "apply", refuse)
     mean, cov = (t.detach().float() for t in gaussian(3, (2,), (), seed=4))
     features = AngleFeatures(3, (1,))
-    got = features.moments(Gaussian(mean, cov))
+    got = features.moments(Gaussian(mean, cov), native)
     bound = torch.tensor([1.0, 2.0, 3.0])
-    squashed = sin_squash_moments(Gaussian(mean, cov), bound)
-    with formulation("fused"):
-        want = features.moments(Gaussian(mean, cov))
-        want_squashed = sin_squash_moments(Gaussian(mean, cov), bound)
+    squashed = sin_squash_moments(Gaussian(mean, cov), bound, native)
+    fused = Engine(moments="fused")
+    want = features.moments(Gaussian(mean, cov), fused)
+    want_squashed = sin_squash_moments(Gaussian(mean, cov), bound, fused)
     assert got.mean.dtype == torch.float32
     for g, w in zip(
         (got.mean, got.cov, got.gain, squashed.mean, squashed.cov),
@@ -206,7 +200,7 @@ def test_other_dtypes_take_the_torch_path(native, monkeypatch):
     ):
         assert torch.equal(g, w)
     with pytest.raises(AssertionError, match="float32"):  # the float64 path does take it
-        features.moments(Gaussian(mean.double(), cov.double()))
+        features.moments(Gaussian(mean.double(), cov.double()), native)
 
 
 def test_large_variance_is_finite_and_zero_covariance_gives_zero(built):
@@ -255,15 +249,15 @@ def test_native_rollout_equals_fused(built, gp_factory, monkeypatch, kind, resta
     policy = make_policy(kind, 4)
     if restarts > 1:
         policy = spread_restarts(policy, restarts)
-    propagator = MomentMatching(model, policy, quadratic_reward(3, (1,)), angle_dims=(1,))
+    def propagator(moments: str) -> MomentMatching:
+        return MomentMatching(model, policy, quadratic_reward(3, (1,)), angle_dims=(1,), engine=Engine(moments=moments))
+
     gen = torch.Generator().manual_seed(restarts + models)
     start = random_start(models, gen)
     psi = list(policy.parameters())
-    with formulation("fused"):
-        fused = propagator.expected_return(start, 6)
+    fused = propagator("fused").expected_return(start, 6)
     assert calls == {"features": 0, "squash": 0}
-    with formulation("native"):
-        native = propagator.expected_return(start, 6)
+    native = propagator("native").expected_return(start, 6)
     assert calls["features"] >= 6 and calls["squash"] >= 6
     assert native.shape == fused.shape
     assert_rel_close(native, fused, "V", ROLLOUT_RTOL)

@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from qtl.gaussian import Gaussian
-from qtl.kernels.formulation import FORMULATIONS, formulation
+from qtl.kernels.engine import FORMULATIONS, Engine
 from qtl.policies import (
     POLICY_NOISE_VARIANCE,
     LinearPolicy,
@@ -27,11 +27,10 @@ DTYPE = torch.float64
 NUM_SAMPLES = 100_000
 
 
-@pytest.fixture(autouse=True, params=FORMULATIONS)
-def moments_formulation(request):
-    """Every test of this module under each formulation of the moments (a comparison sets its own)."""
-    with formulation(request.param):
-        yield request.param
+@pytest.fixture(params=FORMULATIONS)
+def engine(request) -> Engine:
+    """Each formulation of the moments in turn (torch exp sums)."""
+    return Engine(moments=request.param)
 
 
 def make_rbf(input_dim: int = 3, output_dim: int = 2, num_basis: int = 6, seed: int = 0) -> RBFPolicy:
@@ -84,24 +83,24 @@ def test_squash_is_bounded_and_matches_formula():
 
 
 @pytest.mark.parametrize(("kind", "scale"), list(itertools.product(EXACT_KINDS, [0.3, 1.5])))
-def test_moments_against_monte_carlo(mc, cov_factory, kind, scale):
+def test_moments_against_monte_carlo(mc, cov_factory, kind, scale, engine):
     policy = make_policy(kind)
     gen = torch.Generator().manual_seed(int(10 * scale))
     state = Gaussian(0.5 * torch.randn(3, generator=gen, dtype=DTYPE), cov_factory(3, scale, gen))
     with torch.no_grad():
-        result = policy.moments(state)
+        result = policy.moments(state, engine)
         x = state.sample(NUM_SAMPLES, generator=gen)
         mc.assert_moments(result, x, policy(x))
     torch.testing.assert_close(state.cov @ result.gain, result.cross_cov)
 
 
 @pytest.mark.parametrize("scale", [0.3, 1.5])
-def test_squashed_rbf_moments_approximately(cov_factory, scale):
+def test_squashed_rbf_moments_approximately(cov_factory, scale, engine):
     policy = make_policy("squashed-rbf")
     gen = torch.Generator().manual_seed(int(10 * scale))
     state = Gaussian(0.5 * torch.randn(3, generator=gen, dtype=DTYPE), cov_factory(3, scale, gen))
     with torch.no_grad():
-        result = policy.moments(state)
+        result = policy.moments(state, engine)
         x = state.sample(NUM_SAMPLES, generator=gen)
         u = policy(x)
     u_c, x_c = u - u.mean(0), x - x.mean(0)
@@ -111,41 +110,41 @@ def test_squashed_rbf_moments_approximately(cov_factory, scale):
 
 
 @pytest.mark.parametrize("scale", [0.2, 1.0, 3.0])
-def test_squash_moments_against_monte_carlo(mc, cov_factory, scale):
+def test_squash_moments_against_monte_carlo(mc, cov_factory, scale, engine):
     gen = torch.Generator().manual_seed(7)
     state = Gaussian(torch.tensor([0.3, -1.2], dtype=DTYPE), cov_factory(2, scale, gen))
     bound = torch.tensor([10.0, 0.5], dtype=DTYPE)
     z = state.sample(NUM_SAMPLES, generator=gen)
-    mc.assert_moments(sin_squash_moments(state, bound), z, sin_squash(z, bound))
+    mc.assert_moments(sin_squash_moments(state, bound, engine), z, sin_squash(z, bound))
 
 
 @pytest.mark.parametrize("kind", KINDS)
-def test_delta_input_gives_deterministic_action(kind):
+def test_delta_input_gives_deterministic_action(kind, engine):
     policy = make_policy(kind)
     x = torch.tensor([0.2, -0.3, 0.8], dtype=DTYPE)
     with torch.no_grad():
-        result = policy.moments(Gaussian(x, torch.zeros(3, 3, dtype=DTYPE)))
+        result = policy.moments(Gaussian(x, torch.zeros(3, 3, dtype=DTYPE)), engine)
         torch.testing.assert_close(result.mean, policy(x))
     assert result.cov.abs().max() < 1e-12
 
 
 @pytest.mark.parametrize("kind", KINDS)
-def test_batched_equals_per_item(kind, cov_factory):
+def test_batched_equals_per_item(kind, cov_factory, engine):
     policy = make_policy(kind)
     gen = torch.Generator().manual_seed(5)
     means = torch.randn(4, 3, generator=gen, dtype=DTYPE)
     covs = cov_factory(3, 0.8, gen, batch=(4,))
     with torch.no_grad():
-        batched = policy.moments(Gaussian(means, covs))
+        batched = policy.moments(Gaussian(means, covs), engine)
         for i in range(4):
-            single = policy.moments(Gaussian(means[i], covs[i]))
+            single = policy.moments(Gaussian(means[i], covs[i]), engine)
             torch.testing.assert_close(batched.mean[i], single.mean)
             torch.testing.assert_close(batched.cov[i], single.cov)
             torch.testing.assert_close(batched.gain[i], single.gain)
 
 
 @pytest.mark.parametrize("kind", KINDS)
-def test_gradcheck_wrt_input_and_psi(kind):
+def test_gradcheck_wrt_input_and_psi(kind, engine):
     policy = make_policy(kind)
     names = [name for name, _ in policy.named_parameters()]
     gen = torch.Generator().manual_seed(6)
@@ -156,7 +155,7 @@ def test_gradcheck_wrt_input_and_psi(kind):
     def moments(m, r, *params):
         state = Gaussian(m, r @ r.T)
         out = torch.func.functional_call(
-            _Moments(policy), {f"policy.{n}": p for n, p in zip(names, params, strict=True)}, (state,)
+            _Moments(policy, engine), {f"policy.{n}": p for n, p in zip(names, params, strict=True)}, (state,)
         )
         return out.mean, out.cov, out.cross_cov
 
@@ -179,12 +178,12 @@ def test_gradcheck_deterministic_action(kind):
 class _Moments(torch.nn.Module):
     """Wraps a policy's moment map as a forward, so functional_call can swap ψ."""
 
-    def __init__(self, policy):
+    def __init__(self, policy, engine):
         super().__init__()
-        self.policy = policy
+        self.policy, self.engine = policy, engine
 
     def forward(self, state):
-        return self.policy.moments(state)
+        return self.policy.moments(state, self.engine)
 
 
 def test_rbf_psi_is_the_paper_parameters():
@@ -193,14 +192,15 @@ def test_rbf_psi_is_the_paper_parameters():
     assert {name for name, _ in SquashedPolicy(make_rbf(), 1.0).named_parameters()} == {f"policy.{n}" for n in names}
 
 
+@pytest.mark.parametrize("moments", FORMULATIONS)
 @settings(max_examples=25, deadline=None)
 @given(seed=st.integers(0, 2**31 - 1), scale=st.floats(1e-3, 5.0), kind=st.sampled_from(KINDS))
-def test_covariances_are_psd(psd, cov_factory, seed, scale, kind):
+def test_covariances_are_psd(psd, cov_factory, seed, scale, kind, moments):
     gen = torch.Generator().manual_seed(seed)
     policy = make_policy(kind, seed=seed % 7)
     state = Gaussian(2 * torch.randn(3, generator=gen, dtype=DTYPE), cov_factory(3, scale, gen))
     with torch.no_grad():
-        result = policy.moments(state)
+        result = policy.moments(state, Engine(moments=moments))
     psd(result.cov)
     joint = torch.cat(
         [torch.cat([state.cov, result.cross_cov], -1), torch.cat([result.cross_cov.T, result.cov], -1)],
@@ -218,7 +218,7 @@ def test_rejects_bad_shapes():
         SquashedPolicy(make_rbf(), [1.0, -1.0])
 
 
-# --- The fused formulation against the reference one (qtl.kernels.formulation), values and gradients. ---
+# --- The fused formulation against the reference one (qtl.kernels.Engine), values and gradients. ---
 
 
 @pytest.mark.parametrize(("num", "batch", "scale"), list(itertools.product([1, 2, 3], [(), (3,), (2, 3)], [0.3, 2.0])))
@@ -226,8 +226,8 @@ def test_squash_moments_formulations_agree(num, batch, scale):
     mean, root = random_state(num, batch, seed=num + 10 * len(batch), scale=scale)
     bound = torch.linspace(0.5, 3.0, num, dtype=DTYPE).requires_grad_()
 
-    def moments(m, r, b):
-        out = sin_squash_moments(Gaussian(m, r @ r.mT), b)
+    def moments(engine, m, r, b):
+        out = sin_squash_moments(Gaussian(m, r @ r.mT), b, engine)
         return out.mean, out.cov, out.cross_cov, out.gain
 
     assert_formulations_agree(moments, (mean, root, bound))
@@ -241,8 +241,8 @@ def test_squashed_policy_moments_formulations_agree(inner, restarts):
         policy = spread_restarts(policy, restarts)
     mean, root = random_state(3, (restarts,) if restarts > 1 else (), seed=restarts)
 
-    def moments(m, r, *psi):
-        out = policy.prepare()(Gaussian(m, r @ r.mT))
+    def moments(engine, m, r, *psi):
+        out = policy.prepare(engine)(Gaussian(m, r @ r.mT))
         return out.mean, out.cov, out.cross_cov, out.gain
 
     assert_formulations_agree(moments, (mean, root, *policy.parameters()))

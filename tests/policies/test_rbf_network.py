@@ -10,7 +10,7 @@ from torch import Tensor
 
 from qtl.features import AngleFeatures
 from qtl.gaussian import Gaussian
-from qtl.kernels.formulation import formulation
+from qtl.kernels.engine import Engine
 from qtl.policies import (
     LinearPolicy,
     RBFNetwork,
@@ -19,7 +19,6 @@ from qtl.policies import (
     rbf_network_policy,
     restart_state,
 )
-from qtl.policies.rbf_network import network_form
 from tests.propagation.restarts import RESTARTS, spread_restarts
 
 DTYPE = torch.float64
@@ -72,10 +71,10 @@ def test_prepare_moments_against_monte_carlo(mc, cov_factory, moments, scale):
     net = make_network()
     gen = torch.Generator().manual_seed(int(10 * scale))
     state = Gaussian(0.5 * torch.randn(3, generator=gen, dtype=DTYPE), cov_factory(3, scale, gen))
-    with formulation(moments), torch.no_grad():
-        result = net.prepare()(state)
+    with torch.no_grad():
+        result = net.prepare(Engine(moments=moments))(state)
         x = state.sample(NUM_SAMPLES, generator=gen)
-        mc.assert_moments(result, x, net(x))
+        mc.assert_moments(result, x, net(x, Engine(moments=moments)))
 
 
 def test_moments_ignore_dropout():
@@ -102,10 +101,9 @@ def test_gradcheck_forward_wrt_input_and_all_psi(moments, rate):
 
     def act(inputs: Tensor, *params: Tensor) -> Tensor:
         net.set_dropout(rate, torch.Generator().manual_seed(3))  # one mask for every evaluation
-        return torch.func.functional_call(net, dict(zip(names, params, strict=True)), (inputs,))
+        return torch.func.functional_call(net, dict(zip(names, params, strict=True)), (inputs, Engine(moments=moments)))
 
-    with formulation(moments):
-        assert torch.autograd.gradcheck(act, (x, *psi))
+    assert torch.autograd.gradcheck(act, (x, *psi))
 
 
 @pytest.mark.parametrize("rate", [0.0, 0.25])
@@ -120,8 +118,7 @@ def test_fused_forward_equals_the_reference(output_dim, shape, rate):
     for moments in ("reference", "fused"):
         net.set_dropout(rate, torch.Generator().manual_seed(6))  # the same masks in both
         point = x.clone().requires_grad_()
-        with formulation(moments):
-            actions = net(point)
+        actions = net(point, Engine(moments=moments))
         grads = torch.autograd.grad((actions * probe).sum(), (point, *net.parameters()))
         results.append((actions, *grads))
     for got, want in zip(results[1], results[0], strict=True):
@@ -139,15 +136,13 @@ def graph_nodes(t: Tensor) -> str:
 
 
 def test_the_reference_form_turns_the_fused_op_off():
-    """Within ``network_form("reference")`` the fused formulation's actions are the plain form's, bit for bit."""
+    """With ``Engine.network="reference"`` the fused formulation's actions are the plain form's, bit for bit."""
     net = make_network(input_dim=5, output_dim=1, num_basis=9)
     x = torch.randn(7, 5, generator=torch.Generator().manual_seed(8), dtype=DTYPE)
-    with formulation("reference"):
-        plain = net(x)
-    with formulation("fused"):
-        with network_form("reference"):
-            assert torch.equal(net(x), plain) and "_NetworkValues" not in graph_nodes(net(x))
-        assert "_NetworkValuesBackward" in graph_nodes(net(x))
+    plain = net(x, Engine(moments="reference"))
+    pinned = Engine(moments="fused", network="reference")
+    assert torch.equal(net(x, pinned), plain) and "_NetworkValues" not in graph_nodes(net(x, pinned))
+    assert "_NetworkValuesBackward" in graph_nodes(net(x, Engine(moments="fused")))
 
 
 def test_fused_forward_skips_the_gradients_nobody_needs():
@@ -155,10 +150,8 @@ def test_fused_forward_skips_the_gradients_nobody_needs():
     net = make_network(input_dim=5, output_dim=1, num_basis=9)
     x = torch.randn(7, 5, generator=torch.Generator().manual_seed(8), dtype=DTYPE)
     net.centres.requires_grad_(False)
-    with formulation("fused"):
-        net(x).sum().backward()
-    with formulation("reference"):
-        reference = torch.autograd.grad(net(x).sum(), net.weights)[0]
+    net(x, Engine(moments="fused")).sum().backward()
+    reference = torch.autograd.grad(net(x, Engine(moments="reference")).sum(), net.weights)[0]
     assert net.centres.grad is None and net.weights.grad is not None
     torch.testing.assert_close(net.weights.grad, reference, rtol=RTOL, atol=ATOL)
 

@@ -16,7 +16,7 @@ from qtl.config import register_configs
 from qtl.errors import UserError
 from qtl.features import AngleFeatures
 from qtl.gaussian import Gaussian
-from qtl.kernels.exp_sum import backend
+from qtl.kernels.engine import Engine
 from qtl.models import GPPosteriorCache, SparseDynamicsGP
 from qtl.policies import RBFPolicy, SquashedPolicy
 from qtl.propagation import Particles
@@ -31,6 +31,7 @@ from tests.helpers import (
     tiny_config,
 )
 from tests.propagation.restarts import assert_restarts_equal_separate
+from tests.test_build import factory_keywords
 
 DTYPE = torch.float64
 # Agreement with an independent per-particle reference using the same random numbers.
@@ -521,11 +522,11 @@ def test_path_dtype_float32_values_and_gradients_equal_float64(gp_factory, name)
     z = (torch.randn(3, 16, 5, generator=gen, dtype=DTYPE) * double._inv_lengthscales).requires_grad_()
     probe = torch.randn(3, 16, generator=gen, dtype=DTYPE)
     results = []
-    with backend(name):
-        for particles in (double, single):
-            value = path_values(z.to(particles._eval_dtype), particles._path_data, particles._path_data_sq,
-                                particles._path_signal_variance, particles.functions()).to(DTYPE)
-            results.append((value, *torch.autograd.grad((value * probe).sum(), z)))
+    engine = Engine.resolve(name, "reference")
+    for particles in (double, single):
+        value = path_values(z.to(particles._eval_dtype), particles._path_data, particles._path_data_sq,
+                            particles._path_signal_variance, particles.functions(), engine).to(DTYPE)
+        results.append((value, *torch.autograd.grad((value * probe).sum(), z)))
     assert results[1][0].dtype == DTYPE
     for got, want in zip(results[1], results[0], strict=True):
         scale = want.abs().max()
@@ -537,9 +538,9 @@ def test_path_dtype_float32_rollout_equals_float64(gp_factory, name):
     gp, policy, reward = pendulum_parts(gp_factory)
     start = Gaussian(torch.tensor([0.1, 2.5, -0.3], dtype=DTYPE), torch.diag(torch.tensor([0.04, 0.2, 0.09],
                                                                                          dtype=DTYPE)))
-    with backend(name):
-        want = rollout_value_and_grads(pathwise(gp, policy, reward), policy, start, 5)
-        got = rollout_value_and_grads(pathwise(gp, policy, reward, path_dtype="float32"), policy, start, 5)
+    engine = Engine.resolve(name, "reference")
+    want = rollout_value_and_grads(pathwise(gp, policy, reward, engine=engine), policy, start, 5)
+    got = rollout_value_and_grads(pathwise(gp, policy, reward, path_dtype="float32", engine=engine), policy, start, 5)
     assert got[0].dtype == DTYPE
     for g, w in zip(got, want, strict=True):
         assert 0 < (g - w).abs().max() <= ROLLOUT_F32_RTOL * w.abs().max()
@@ -573,5 +574,5 @@ def test_bad_path_dtype_is_a_user_error(gp_factory):
         pathwise(gp, policy, reward, path_dtype="float16")
     with pytest.raises(UserError, match=r"propagation\.path_dtype must be one of"):
         build(tiny_config("propagation=particles", "propagation.path_dtype=float16"))
-    assert build(tiny_config("propagation=particles", "propagation.path_dtype=float32")).make_propagator.keywords[
-        "path_dtype"] == "float32"
+    parts = build(tiny_config("propagation=particles", "propagation.path_dtype=float32"))
+    assert factory_keywords(parts.make_propagator)["path_dtype"] == "float32"

@@ -16,6 +16,7 @@ from qtl.loop import run
 from qtl.report import write_report
 from qtl.report.final_policies import FINAL_POLICIES_FILE
 from tests.helpers import tiny_config
+from tests.test_runs import BEFORE_THE_FAST_PATHS, as_made_before_the_fast_paths
 
 pytestmark = pytest.mark.e2e  # runs the real script in a subprocess
 
@@ -92,3 +93,19 @@ def test_runs_without_their_checkpoints_are_refused_in_one_line_before_any_work(
     assert f"1 of 1 run(s) hold no checkpoint (checkpoints/episode_NNNN.pt), whose policy this script runs: " \
            f"target/pilco/m0.5/seed_{SEED};" in last
     assert not (lean / FINAL_POLICIES_FILE).exists()
+
+
+def test_a_run_made_before_the_fast_paths_is_replayed_as_it_ran(tmp_path: Path) -> None:
+    # Its stored config lacks the keys issue 18 added (the engine, model.warm_start, optimizer.batched): the run is
+    # rebuilt with the values it ran with (qtl.runs.load_run migrates the config as resume does), not with today's
+    # defaults, and its last episode replays exactly.
+    run_dir = tmp_path / "target" / "pilco" / "m0.5" / f"seed_{SEED}"
+    run(tiny_config("episodes=1", f"seed={SEED}", *BEFORE_THE_FAST_PATHS), run_dir)
+    as_made_before_the_fast_paths(run_dir)
+    output = tmp_path / "eval.json"
+    done = _call(str(tmp_path), "--starts", "2", "--eval-seed", str(SEED), "--output", str(output))
+    assert done.returncode == 0, done.stderr[-3000:]
+    (evaluation,) = json.loads(output.read_text())["runs"]
+    with open(run_dir / "metrics.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert evaluation["returns"][1] == pytest.approx(float(rows[1]["return"]), rel=1e-12)

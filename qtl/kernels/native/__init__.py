@@ -1,7 +1,10 @@
-"""Compiled CPU kernels (plain C through ctypes, built by `python -m qtl.kernels.native.build`)."""
+"""Compiled CPU kernels (plain C through ctypes, built by `python -m qtl.kernels.native.build`), a module per source."""
 
 from qtl.kernels.native.artefact import artefact_path
-from qtl.kernels.native.exp_sum import NativeWeightedExpSum
-from qtl.kernels.native.library import ExpSumLibrary, load_exp_sum
+from qtl.kernels.native.exp_sum import ExpSumLibrary, NativeWeightedExpSum, load_exp_sum
+from qtl.kernels.native.loader import binding_once, load_binding, open_library
 
-__all__ = ["ExpSumLibrary", "NativeWeightedExpSum", "artefact_path", "load_exp_sum"]
+__all__ = [
+    "ExpSumLibrary", "NativeWeightedExpSum", "artefact_path", "binding_once", "load_binding", "load_exp_sum",
+    "open_library",
+]

@@ -6,15 +6,15 @@ import hashlib
 import platform
 from pathlib import Path
 
-SOURCE = Path(__file__).with_name("exp_sum.c")
+DIRECTORY = Path(__file__).parent
 # All C sources of this directory, compiled together into one shared library (exp sums, moments, ...).
-SOURCES = tuple(sorted(Path(__file__).parent.glob("*.c")))
+SOURCES = tuple(sorted(DIRECTORY.glob("*.c")))
 COMPILER = "gcc"
 # -O3 and -march=native let gcc vectorise the exp loops through libmvec (AVX-512 or AVX2 variants);
 # -fno-math-errno lets it call them; -fopenmp for the threads and the `omp simd` reductions.
 FLAGS = ("-O3", "-march=native", "-fno-math-errno", "-fopenmp", "-fPIC", "-shared", "-Wall", "-Wextra")
 LIBS = ("-lm",)
-ARTEFACT_PREFIX = "_exp_sum-"
+ARTEFACT_PREFIX = "_qtl_kernels-"
 
 
 def cpu_tag() -> str:
@@ -42,4 +42,4 @@ def cache_key() -> str:
 
 def artefact_path() -> Path:
     """The shared library built from these sources with these flags on this CPU (it may not exist)."""
-    return SOURCE.with_name(f"{ARTEFACT_PREFIX}{cache_key()}.so")
+    return DIRECTORY / f"{ARTEFACT_PREFIX}{cache_key()}.so"

@@ -1,9 +1,9 @@
-"""Build the native exp-sum kernel into this package directory, unless it is already built (cached).
+"""Build qtl's native kernels (one shared library) into this package directory, unless already built (cached).
 
     python -m qtl.kernels.native.build [--force] [--optional]
 
 Compiles every `*.c` of this directory (`exp_sum.c`, `se_moments.c`, `trig.c`, `pathwise.c`, `rbf_network.c`) with
-`artefact.COMPILER` and `artefact.FLAGS` into `_exp_sum-<key>.so`, the key a hash of the sources, the flags
+`artefact.COMPILER` and `artefact.FLAGS` into `_qtl_kernels-<key>.so`, the key a hash of the sources, the flags
 and the CPU (so a changed source or another machine rebuilds), then checks the exp sums, the SE-kernel
 moments, the pathwise-function values and the RBF network against their torch twins on small problems before keeping it
 (the angle-feature and squashing kernels of `trig.c` are compared with theirs by the test suite). ``--optional`` (used
@@ -23,8 +23,8 @@ from pathlib import Path
 import torch
 
 from qtl.kernels.native.artefact import ARTEFACT_PREFIX, COMPILER, FLAGS, LIBS, SOURCES, artefact_path
-from qtl.kernels.native.exp_sum import NativeWeightedExpSum
-from qtl.kernels.native.library import ExpSumLibrary, load_exp_sum
+from qtl.kernels.native.exp_sum import ExpSumLibrary, NativeWeightedExpSum, load_exp_sum
+from qtl.kernels.native.loader import open_library
 from qtl.kernels.native.pathwise import PathValuesLibrary
 from qtl.kernels.native.pathwise import check_against_torch as check_path_values
 from qtl.kernels.native.rbf_network import NetworkLibrary
@@ -36,6 +36,8 @@ logger = logging.getLogger(__name__)
 
 # The smoke check's tolerance (relative, float64): the kernel agrees with torch to ~1e-15.
 CHECK_RTOL = 1e-12
+# Libraries of other sources, flags or CPUs, removed once a build succeeds (`_exp_sum-`: the name before).
+STALE_PREFIXES = (ARTEFACT_PREFIX, "_exp_sum-")
 
 
 class BuildError(RuntimeError):
@@ -83,39 +85,40 @@ def check_against_torch(library: ExpSumLibrary | None = None) -> None:
 
 
 def build(force: bool = False) -> Path:
-    """The kernel for this source, flags and CPU: compiled and checked unless already there."""
+    """The library for these sources, flags and CPU: compiled and checked unless already there."""
     target = artefact_path()
     if target.is_file() and not force:
-        logger.debug("native exp-sum kernel up to date: %s", target)
+        logger.debug("native kernels up to date: %s", target)
         return target
     tic = time.perf_counter()
     compile_kernel(target)
     try:
-        check_against_torch()
-        check_se_moments(SEMomentsLibrary(target), error=BuildError)
-        check_path_values(PathValuesLibrary(target), error=BuildError)
-        check_network(NetworkLibrary(target), error=BuildError)
+        lib = open_library(target)
+        check_against_torch(ExpSumLibrary(lib))
+        check_se_moments(SEMomentsLibrary(lib), error=BuildError)
+        check_path_values(PathValuesLibrary(lib), error=BuildError)
+        check_network(NetworkLibrary(lib), error=BuildError)
     except BaseException:
         target.unlink(missing_ok=True)
         raise
-    for stale in target.parent.glob(f"{ARTEFACT_PREFIX}*.so"):
+    for stale in (path for prefix in STALE_PREFIXES for path in target.parent.glob(f"{prefix}*.so")):
         if stale != target:
             stale.unlink(missing_ok=True)
-    logger.info("built the native exp-sum kernel %s in %.1f s", target, time.perf_counter() - tic)
+    logger.info("built the native kernels %s in %.1f s", target, time.perf_counter() - tic)
     return target
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Command line: build (or keep) the kernel; exit status 1 on failure unless ``--optional``."""
+    """Command line: build (or keep) the library; exit status 1 on failure unless ``--optional``."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--force", action="store_true", help="rebuild even when the cached kernel is there")
+    parser.add_argument("--force", action="store_true", help="rebuild even when the cached library is there")
     parser.add_argument("--optional", action="store_true", help="a failed build prints one line and exits 0")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="qtl: %(message)s")
     try:
         build(force=args.force)
     except (BuildError, ImportError, OSError) as err:
-        print(f"qtl: native exp-sum kernel not built ({err}); qtl will use the torch path", file=sys.stderr)
+        print(f"qtl: native kernels not built ({err}); qtl will use the torch path", file=sys.stderr)
         return 0 if args.optional else 1
     return 0
 

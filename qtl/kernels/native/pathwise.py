@@ -11,13 +11,12 @@ from __future__ import annotations
 import ctypes
 import functools
 import math
-from pathlib import Path
 
 import torch  # first: the library then shares the libgomp torch has loaded
 from torch import Tensor
 from torch.autograd.function import FunctionCtx, once_differentiable
 
-from qtl.kernels.native.library import binding_once, load_binding
+from qtl.kernels.native.loader import binding_once, load_binding
 
 _PTR, _INT64, _INT = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int
 # The smoke check's tolerance (relative to the largest reference value, float64).
@@ -32,8 +31,7 @@ ENTRY_POINTS = {torch.float64: "qtl_path_values", torch.float32: "qtl_path_value
 class PathValuesLibrary:
     """``qtl_path_values`` (float64) and ``qtl_path_values_f32`` (float32) of the compiled library, through ctypes."""
 
-    def __init__(self, path: Path) -> None:
-        lib = ctypes.CDLL(str(path))
+    def __init__(self, lib: ctypes.CDLL) -> None:
         self._entries = {}
         for dtype, name in ENTRY_POINTS.items():
             entry = getattr(lib, name)
@@ -42,7 +40,6 @@ class PathValuesLibrary:
             entry.restype = _INT
             self._entries[dtype] = entry
         self._lib = lib
-        self.path = path
 
     def values(
         self,

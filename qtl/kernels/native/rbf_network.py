@@ -8,13 +8,12 @@ with the gradients for the points, the centres, the weights and the log-lengthsc
 from __future__ import annotations
 
 import ctypes
-from pathlib import Path
 
 import torch  # first: the library then shares the libgomp torch has loaded
 from torch import Tensor
 from torch.autograd.function import FunctionCtx, once_differentiable
 
-from qtl.kernels.native.library import binding_once, load_binding
+from qtl.kernels.native.loader import binding_once, load_binding
 
 _PTR, _INT64 = ctypes.c_void_p, ctypes.c_int64
 # The build's smoke check: relative to the largest reference value (float64; the kernel agrees to ~1e-15).
@@ -29,8 +28,7 @@ def _ptr(t: Tensor | None) -> int | None:
 class NetworkLibrary:
     """``qtl_rbf_network_forward`` and ``qtl_rbf_network_backward`` of the compiled library, through ctypes."""
 
-    def __init__(self, path: Path) -> None:
-        lib = ctypes.CDLL(str(path))
+    def __init__(self, lib: ctypes.CDLL) -> None:
         # x, c, w, a, mask, m, n, dim, f, u, k
         lib.qtl_rbf_network_forward.argtypes = [*[_PTR] * 5, *[_INT64] * 4, _PTR, _PTR]
         # x, c, w, a, k, g, m, n, dim, f, grad_x, grad_c, grad_w, grad_log_ls
@@ -38,7 +36,6 @@ class NetworkLibrary:
         lib.qtl_rbf_network_forward.restype = ctypes.c_int
         lib.qtl_rbf_network_backward.restype = ctypes.c_int
         self.lib = lib
-        self.path = path
 
     def forward(self, x: Tensor, centres: Tensor, weights: Tensor, inv_sq: Tensor, mask: Tensor | None
                 ) -> tuple[Tensor, Tensor]:  # fmt: skip

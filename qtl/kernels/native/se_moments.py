@@ -7,36 +7,20 @@ f_a(x) = Σ_i β_ai k_a(x_i, x) at x ~ N(μ, Σ), with the hand-derived adjoint 
 
 from __future__ import annotations
 
-import contextlib
 import ctypes
 import math
-from collections.abc import Iterator
-from pathlib import Path
 
 import torch  # first: the library then shares the libgomp torch has loaded
 from torch import Tensor
 from torch.autograd.function import FunctionCtx, once_differentiable
 
-from qtl.kernels.native.library import binding_once, load_binding
+from qtl.kernels.native.loader import binding_once, load_binding
 
 _PTR, _INT64, _INT = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int
 _PTRS = ctypes.POINTER(ctypes.c_void_p)
 _INTS = ctypes.POINTER(ctypes.c_int64)
 # Trailing (per-item) dimensions of mean, cov, inputs, beta, inv_ls, log_sf2, weights.
 _INNER = (1, 2, 2, 2, 2, 1, 3)
-# The a = b pairs' exp sums from their lower triangles (S_aa is symmetric): E of the E(E+1)/2 sums at half cost.
-_LOWER_PAIRS = True
-
-
-@contextlib.contextmanager
-def full_pairs() -> Iterator[None]:
-    """Every pair's full n x n exp sum inside the block (the form before the lower sums: benchmarks and tests)."""
-    global _LOWER_PAIRS
-    previous, _LOWER_PAIRS = _LOWER_PAIRS, False
-    try:
-        yield
-    finally:
-        _LOWER_PAIRS = previous
 _NUM_OPERANDS = len(_INNER)
 _STATUS_NOT_PD = 2
 
@@ -44,8 +28,7 @@ _STATUS_NOT_PD = 2
 class SEMomentsLibrary:
     """``qtl_se_moments_forward`` and ``qtl_se_moments_backward`` of the compiled library, through ctypes."""
 
-    def __init__(self, path: Path) -> None:
-        lib = ctypes.CDLL(str(path))
+    def __init__(self, lib: ctypes.CDLL) -> None:
         # operand, ndim, batch, strides, n, d, e
         common = [_PTRS, _INT64, _INTS, _INTS, _INT64, _INT64, _INT64]
         lib.qtl_se_moments_forward.argtypes = [*common, _PTR, _PTR, _PTR, _PTR, _INT, _INT, _INT]
@@ -53,16 +36,17 @@ class SEMomentsLibrary:
         lib.qtl_se_moments_backward.argtypes = [*common, _PTR, _INT, _PTRS, _INTS, _PTRS, _INTS, _INT]
         lib.qtl_se_moments_backward.restype = _INT
         self._lib = lib
-        self.path = path
 
     def forward(
-        self, operands: tuple[Tensor, ...], batch: torch.Size, with_grads: bool
+        self, operands: tuple[Tensor, ...], batch: torch.Size, with_grads: bool, lower_pairs: bool = True
     ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """Mean `*batch x E`, cov `*batch x E x E` (no model variance), gain `*batch x D x E` and the work buffer.
 
         ``operands`` (mean, cov, inputs, beta, inv_ls, log_sf2, weights) are contiguous in their trailing
         dimensions and broadcast to ``batch``; ``with_grads``: the work buffer also keeps the exp sums'
-        operand gradients G_A, G_B for the backward pass.
+        operand gradients G_A, G_B for the backward pass. ``lower_pairs``: the a = b pairs' exp sums from
+        their lower triangles (S_aa is symmetric: E of the E(E+1)/2 sums at half cost); False: every pair's
+        full n x n sum (the form before; benchmarks and tests).
         """
         inputs, beta = operands[2], operands[3]
         n, d, e = inputs.shape[-2], inputs.shape[-1], beta.shape[-2]
@@ -76,7 +60,7 @@ class SEMomentsLibrary:
         status = self._lib.qtl_se_moments_forward(
             _pointers(operands), *_batch_args(operands, batch), n, d, e,
             out_mean.data_ptr(), out_cov.data_ptr(), gain.data_ptr(), work.data_ptr(),
-            int(with_grads), int(_LOWER_PAIRS), torch.get_num_threads(),
+            int(with_grads), int(lower_pairs), torch.get_num_threads(),
         )  # fmt: skip
         _raise_for(status)
         return out_mean, out_cov, gain, work
@@ -168,7 +152,6 @@ def load_se_moments() -> SEMomentsLibrary:
     return load_binding(SEMomentsLibrary)
 
 
-
 class NativeSEKernelMoments(torch.autograd.Function):
     """Mean `... x E`, covariance `... x E x E` (without diag(α²)) and gain `... x D x E` by `se_moments.c`.
 
@@ -192,6 +175,7 @@ class NativeSEKernelMoments(torch.autograd.Function):
         weights: Tensor,
         library: SEMomentsLibrary,
         grad_enabled: bool,
+        lower_pairs: bool,
     ) -> tuple[Tensor, Tensor, Tensor]:
         operands = tuple(
             _trailing_contiguous(t, inner)
@@ -201,7 +185,7 @@ class NativeSEKernelMoments(torch.autograd.Function):
         needs = tuple(ctx.needs_input_grad[:_NUM_OPERANDS]) if grad_enabled else (False,) * _NUM_OPERANDS
         need_ops = any(needs[i] for i in (0, 1, 2, 4, 5))  # all but beta enter the exp sums' operands
         ctx.fused = need_ops and not needs[6]
-        out_mean, out_cov, gain, work = library.forward(operands, batch, ctx.fused)
+        out_mean, out_cov, gain, work = library.forward(operands, batch, ctx.fused, lower_pairs)
         if any(needs):
             ctx.save_for_backward(*operands)
             ctx.work, ctx.batch, ctx.library = work, batch, library
@@ -216,7 +200,7 @@ class NativeSEKernelMoments(torch.autograd.Function):
         operands = ctx.saved_tensors
         needs = tuple(ctx.needs_input_grad[:_NUM_OPERANDS])
         grads = ctx.library.backward(operands, ctx.batch, ctx.work, ctx.fused, (grad_mean, grad_cov, grad_gain), needs)
-        return *grads, None, None
+        return *grads, None, None, None
 
 
 def native_fits(*tensors: Tensor) -> bool:
@@ -233,9 +217,13 @@ def se_kernel_moments(
     log_sf2: Tensor,
     weights: Tensor,
     library: SEMomentsLibrary | None = None,
+    lower_pairs: bool = True,
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """Mean `... x E`, cov `... x E x E` (no model variance) and gain `... x D x E` by the compiled kernel."""
+    """Mean `... x E`, cov `... x E x E` (no model variance) and gain `... x D x E` by the compiled kernel.
+
+    ``lower_pairs``: as in :meth:`SEMomentsLibrary.forward` (``Engine.lower_pairs``).
+    """
     library = library or binding_once(SEMomentsLibrary)
     return NativeSEKernelMoments.apply(
-        mean, cov, inputs, beta, inv_ls, log_sf2, weights, library, torch.is_grad_enabled()
+        mean, cov, inputs, beta, inv_ls, log_sf2, weights, library, torch.is_grad_enabled(), lower_pairs
     )

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import torch
 
-from qtl.kernels.formulation import formulation
+from qtl.kernels.engine import Engine
 from qtl.kernels.moments import SEKernelMoments
 from qtl.kernels.native.se_moments import SEMomentsLibrary, load_se_moments, se_kernel_moments
 
@@ -47,8 +47,7 @@ def check_against_torch(library: SEMomentsLibrary | None = None, error: type[Exc
         leaves = tuple(t for t in (mean, cov, inputs, beta, ls, sf2) if t.requires_grad)
         probes = [torch.randn(s, generator=gen, dtype=f64) for s in ((2, 3, num_out), (2, 3, num_out, num_out))]
         probes.append(torch.randn(2, 3, 5, num_out, generator=gen, dtype=f64))
-        with formulation("fused"):
-            want = m._fused_call(mean, cov)
+        want = m._fused_call(mean, cov, Engine(moments="fused"))
         got = list(se_kernel_moments(mean, cov, m.inputs, m.beta, m.inv_ls, m.log_sf2, m.weights, library))
         if with_k_inv:
             got[1] = got[1] + torch.diag_embed(sf2)

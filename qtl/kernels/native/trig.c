@@ -27,7 +27,7 @@
  *
  * Layout: input item b starts at element offset off_mean[b] / off_cov[b] (broadcast inputs repeat an
  * offset); each matrix is row-major and contiguous; outputs and input gradients are dense per item.
- * The reference twin is the fused torch code; see qtl/kernels/native/trig_moments.py.
+ * The reference twin is the fused torch code; see qtl/kernels/native/trig.py.
  * Build: with the other sources of this directory (qtl/kernels/native/build.py).
  */
 #include <math.h>

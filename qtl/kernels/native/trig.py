@@ -12,14 +12,13 @@ from __future__ import annotations
 import ctypes
 import functools
 import math
-from pathlib import Path
 
 import torch  # first: the library then shares the libgomp torch has loaded
 from torch import Tensor
 from torch.autograd.function import FunctionCtx, once_differentiable
 
 from qtl.kernels.native.exp_sum import item_offsets
-from qtl.kernels.native.library import binding_once, load_binding
+from qtl.kernels.native.loader import binding_once, load_binding
 
 _PTR, _INT64 = ctypes.c_void_p, ctypes.c_int64
 
@@ -32,8 +31,7 @@ def _ptr(t: Tensor | None) -> int | None:
 class TrigLibrary:
     """The four entry points of `trig.c` (angle features and sine squashing, forward and backward)."""
 
-    def __init__(self, path: Path) -> None:
-        lib = ctypes.CDLL(str(path))
+    def __init__(self, lib: ctypes.CDLL) -> None:
         # items, dim, num, angles, others, mean, cov, off_mean, off_cov
         features = [_INT64] * 3 + [_PTR] * 6
         lib.qtl_trig_features_forward.argtypes = [*features, *[_PTR] * 4]
@@ -47,13 +45,11 @@ class TrigLibrary:
         for entry in (lib.qtl_sin_squash_forward, lib.qtl_sin_squash_backward):
             entry.restype = ctypes.c_int
         self.lib = lib
-        self.path = path
 
 
 def load_trig() -> TrigLibrary:
     """The trig kernels built for these sources, flags and CPU; ImportError (saying why) when they cannot load."""
     return load_binding(TrigLibrary)
-
 
 
 def applicable(*tensors: Tensor) -> bool:
