@@ -25,6 +25,7 @@ from qtl.models import DynamicsGP, GPHyperparameters, ModelFit, PreviousFit
 from qtl.policies import Policy, SquashedPolicy
 from qtl.policy_search import SearchResult
 from qtl.propagation import PropagatorFactory
+from qtl.propagation.objective import is_shaped
 from qtl.rewards import AngleDistanceReward, ExpectedSaturatingReward
 from qtl.seeding import ENV_STREAM, POLICY_INIT_STREAM, derive_seed, torch_generator
 from qtl.task import Task, diagonal_gaussian
@@ -86,6 +87,7 @@ class Parts:
     search: PolicySearch  # the ``optimizer`` group
     make_policy: PolicyFactory  # the ``policy`` group
     engine: Engine  # the code that computes moments and exp sums (``kernels.*``, resolved), in every propagator
+    search_reward: str = "task"  # what the policy search scores, by name (:func:`search_reward_name`)
 
     @property
     def kernel_backend(self) -> str:
@@ -179,6 +181,7 @@ def build(cfg: DictConfig) -> Parts:
         search=build_search(cfg.optimizer),
         make_policy=instantiate(cfg.policy),
         engine=engine,
+        search_reward=search_reward_name(make_propagator),
     )
     check_lr_scales(parts.search, parts.initial_policy)
     return parts
@@ -212,6 +215,29 @@ def _with_search_cost(make_propagator: PropagatorFactory, task: Task, cfg: DictC
     cost = AngleDistanceReward(task.state_dim, task.angle_dims, target.tolist(), widths.tolist(),
                                absolute_angles=task.search_cost_angles == "absolute")
     return functools.partial(make_propagator, search_cost="task", task_search_cost=cost)
+
+
+def search_reward_name(make_propagator: PropagatorFactory) -> str:
+    """The reward a propagator of ``make_propagator`` has the policy search score, by name.
+
+    ``task``: the task's own (moment matching always; particles unshaped). Else the base, ``widened``
+    (``reward_width_scale``) or ``search_cost`` (the task's declared search cost), with ``+task`` where
+    ``reward_task_weight`` mixes the task's own in: what the particle propagator scores
+    (:func:`qtl.propagation.objective.search_reward`), by the same rule (:func:`~qtl.propagation.objective.is_shaped`).
+    """
+    keywords = _bound_settings(make_propagator)
+    weight = keywords.get("reward_task_weight", 0.0)
+    cost = keywords.get("search_cost", "widened") != "widened"
+    if not is_shaped(keywords.get("reward_width_scale", 1.0), weight, cost):
+        return "task"
+    base = "search_cost" if cost else "widened"
+    return base if weight == 0.0 else f"{base}+task"
+
+
+def _bound_settings(factory: Any) -> dict[str, Any]:
+    """The keywords a factory binds, through partials of partials (the outermost binding wins)."""
+    inner = getattr(factory, "func", None)
+    return {**(_bound_settings(inner) if inner is not None else {}), **getattr(factory, "keywords", {})}
 
 
 def _with_kinematics(make_propagator: PropagatorFactory, task: Task, cfg: DictConfig) -> PropagatorFactory:

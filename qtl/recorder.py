@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import math
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -79,33 +80,33 @@ def theta_from_row(row: Mapping[str, float | str], prefix: str = THETA_PREFIX) -
     return GPHyperparameters.from_dict(values, start) if values else None
 
 
+@dataclass
+class Records:
+    """A run's records so far, a dict per episode: the rows of ``metrics.csv``, ``timings.csv``, ``health.csv``."""
+
+    rows: list[dict[str, Any]] = field(default_factory=list)
+    timings: list[dict[str, Any]] = field(default_factory=list)
+    health: list[dict[str, Any]] = field(default_factory=list)
+
+
 class RunRecorder:
     """Writes one row per episode to ``metrics.csv`` (and ``timings.csv``, ``health.csv``) and to TensorBoard.
 
-    ``rows``, ``timings`` and ``health`` are earlier episodes' rows (when resuming): the CSV files are
-    rewritten with exactly them, and TensorBoard events from step ``len(rows)`` on, left by an
-    interrupted writer, are purged.
+    ``records``: the run's records, appended to as episodes are recorded; when resuming, they hold the
+    earlier episodes' rows: the CSV files are rewritten with exactly them, and TensorBoard events from step
+    ``len(records.rows)`` on, left by an interrupted writer, are purged.
     """
 
-    def __init__(
-        self,
-        output_dir: Path,
-        columns: Sequence[str],
-        rows: Sequence[dict[str, Any]] = (),
-        timings: Sequence[dict[str, Any]] = (),
-        health: Sequence[dict[str, Any]] = (),
-    ) -> None:
+    def __init__(self, output_dir: Path, columns: Sequence[str], records: Records | None = None) -> None:
         self.output_dir = Path(output_dir)
         self.columns = list(columns)
-        self.rows: list[dict[str, Any]] = [dict(r) for r in rows]
-        self.timings: list[dict[str, Any]] = [dict(t) for t in timings]
-        self.health: list[dict[str, Any]] = [dict(h) for h in health]
-        self._purge_step = len(self.rows) if self.rows else None
+        self.records = Records() if records is None else records
+        self._purge_step = len(self.records.rows) if self.records.rows else None
         self._writer: SummaryWriter | None = None
         self.output_dir.mkdir(parents=True, exist_ok=True)
-        _write_csv(self.output_dir / METRICS_FILE, self.columns, self.rows)
-        _write_csv(self.output_dir / TIMINGS_FILE, TIMING_COLUMNS, self.timings)
-        _write_csv(self.output_dir / HEALTH_FILE, HEALTH_COLUMNS, self.health)
+        _write_csv(self.output_dir / METRICS_FILE, self.columns, self.records.rows)
+        _write_csv(self.output_dir / TIMINGS_FILE, TIMING_COLUMNS, self.records.timings)
+        _write_csv(self.output_dir / HEALTH_FILE, HEALTH_COLUMNS, self.records.health)
 
     @property
     def writer(self) -> SummaryWriter:
@@ -128,9 +129,9 @@ class RunRecorder:
         _append_csv(self.output_dir / METRICS_FILE, self.columns, row)
         _append_csv(self.output_dir / TIMINGS_FILE, TIMING_COLUMNS, timings)
         _append_csv(self.output_dir / HEALTH_FILE, HEALTH_COLUMNS, health)
-        self.rows.append(dict(row))
-        self.timings.append(timings)
-        self.health.append(health)
+        self.records.rows.append(dict(row))
+        self.records.timings.append(timings)
+        self.records.health.append(health)
         tags = {
             "eval/return": row.get("return"),
             "eval/env_return": row.get("env_return"),

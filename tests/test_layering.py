@@ -35,7 +35,7 @@ LAYERS: list[tuple[str, set[str]]] = [
     ("checkpoint files", {"qtl.checkpoint"}),
     ("transfer", {"qtl.transfer"}),
     ("record", {"qtl.recorder", "qtl.metrics", "qtl.hparams", "qtl.report"}),
-    ("algorithm", {"qtl.loop", "qtl.build", "qtl.episodes", "qtl.config", "qtl.runs"}),
+    ("algorithm", {"qtl.loop", "qtl.run_state", "qtl.build", "qtl.episodes", "qtl.config", "qtl.runs"}),
     ("top", {"qtl.train", "qtl.demo", "qtl.launch", "qtl.__main__"}),
 ]
 RANK = {unit: rank for rank, (_, units) in enumerate(LAYERS) for unit in units}

@@ -23,8 +23,7 @@ from qtl.policy_search import SearchResult
 from qtl.propagation import Particles
 from qtl.seeding import ENV_STREAM, derive_seed
 from qtl.train import resume_config
-from tests.helpers import tiny_config
-from tests.propagation.test_particles import pendulum_parts
+from tests.helpers import squashed_rbf_parts, tiny_config
 from tests.toy_envs import register_spinner, spinner_task
 
 
@@ -176,19 +175,33 @@ def test_a_run_checkpointed_before_the_model_group_resumes_as_model_auto(tmp_pat
 
 def test_predicted_return_is_under_the_task_reward_when_the_search_used_a_wider_one(gp_factory):
     """predicted_return: the search's own value for the task's reward, else a rollout scored by the task's reward."""
-    gp, policy, reward = pendulum_parts(gp_factory)
+    gp, policy, reward = squashed_rbf_parts(gp_factory, 3, (1,), 8, seeds=(22, 23))  # a pendulum's parts
     start = Gaussian(torch.tensor([0.1, 2.5, -0.2], dtype=torch.float64), 0.05 * torch.eye(3, dtype=torch.float64))
     found = SearchResult(value=123.0, evaluations=1, run_values=[123.0], rollouts=1)
     same = Particles(gp, policy, reward, angle_dims=(1,), num_particles=30, seed=6)
-    assert predicted_return(same, found, reward, start, 5) == 123.0  # the search valued ψ under the task's reward
+    assert predicted_return(same, found, "task", start, 5) == 123.0  # the search valued ψ under the task's reward
     wide = Particles(gp, policy, reward, angle_dims=(1,), num_particles=30, seed=6, reward_width_scale=4.0)
     with torch.no_grad():
         searched = float(wide.expected_return(start, 5))  # the objective: the wider reward
         task_value = float(same.rollout(start, 5).value)  # the same draw (CRN), the task's reward
-    got = predicted_return(wide, found, reward, start, 5)
+    got = predicted_return(wide, found, "widened", start, 5)
     assert got == pytest.approx(task_value, rel=1e-12) and got < searched
 
 
+@pytest.mark.parametrize(("overrides", "name"), [
+    ([], "task"),  # moment matching
+    (["propagation=particles"], "task"),
+    (["propagation=particles", "propagation.reward_width_scale=4.0"], "widened"),
+    (["propagation=particles", "propagation.reward_width_scale=4.0", "propagation.reward_task_weight=0.5"],
+     "widened+task"),
+    (["propagation=particles", "propagation.reward_width_scale=4.0", "propagation.reward_task_weight=1.0"], "task"),
+    (["propagation=particles", "propagation.search_cost=auto", "propagation.expected_reward=false"], "search_cost"),
+    (["propagation=particles", "propagation.search_cost=auto", "propagation.expected_reward=false",
+      "propagation.reward_task_weight=0.5"], "search_cost+task"),  # recipe=mc_pilco's
+])
+def test_the_search_reward_is_known_by_name(overrides, name):
+    """build names what the policy search scores (the tiny cart-pole declares a search cost)."""
+    assert build(tiny_config(*overrides)).search_reward == name
 def spinner_config(*overrides: str) -> DictConfig:
     """The tiny loop budget on the test spinner: θ wrapped into [−π, π) from θ ≈ π, a short track, no start."""
     cfg = tiny_config(*overrides)

@@ -19,6 +19,7 @@ from qtl.recorder import (
     METRICS_FILE,
     THETA_P_PREFIX,
     TIMINGS_FILE,
+    Records,
     RunRecorder,
     start_columns,
     start_row,
@@ -89,8 +90,8 @@ def test_recorder_writes_rows_and_scalars_and_a_resume_keeps_exactly_the_earlier
     assert logged["theta/out0/lengthscale/in1"] == [(1, 0.25), (2, 0.25)]  # none for the model-less episode
     assert "transfer/compliance" not in logged  # empty values are not logged
 
-    resumed = RunRecorder(tmp_path, COLUMNS, rows=[episode_row(0, None), episode_row(1, THETA)],
-                          timings=read_csv(tmp_path / TIMINGS_FILE)[:2])
+    resumed = RunRecorder(tmp_path, COLUMNS, Records(rows=[episode_row(0, None), episode_row(1, THETA)],
+                                                     timings=read_csv(tmp_path / TIMINGS_FILE)[:2]))
     try:
         resumed.record(episode_row(2, THETA), {"model_fit_s": 0.5, "policy_search_s": 9.0})
     finally:
@@ -147,7 +148,7 @@ def test_env_return_and_an_estimated_start_reach_metrics_and_tensorboard_and_old
     assert start_columns(2) == ["start/mean/0", "start/mean/1", "start/std/0", "start/std/1"]
     assert list(start_row(np.array([3.1, 0.0]), np.array([0.05, 0.01]))) == start_columns(2)
     old = episode_row(0, None)  # as rows of runs made before env_return: no such key
-    recorder = RunRecorder(tmp_path, columns, rows=[old])
+    recorder = RunRecorder(tmp_path, columns, Records(rows=[old]))
     try:
         row = {**episode_row(1, THETA), "env_return": -12.25, **start_row(np.array([3.1, 0.0]), np.array([0.05, 0.01]))}
         recorder.record(row, {"model_fit_s": 0.5, "policy_search_s": 1.0})
@@ -169,8 +170,8 @@ def test_a_resumed_recorder_with_nothing_to_record_writes_no_events_file(tmp_pat
         recorder.close()
     events = sorted(tmp_path.glob("events.out.tfevents*"))
     assert len(events) == 1
-    finished = RunRecorder(tmp_path, COLUMNS, rows=read_csv(tmp_path / METRICS_FILE),
-                           timings=read_csv(tmp_path / TIMINGS_FILE))  # a sweep resuming a finished run
+    finished = RunRecorder(tmp_path, COLUMNS, Records(rows=read_csv(tmp_path / METRICS_FILE),  # a sweep resuming
+                                                      timings=read_csv(tmp_path / TIMINGS_FILE)))  # a finished run
     finished.close()
     assert sorted(tmp_path.glob("events.out.tfevents*")) == events
     assert scalars(tmp_path)["eval/return"] == [(0, 0.5)]

@@ -1,5 +1,6 @@
-"""MC-PILCO's speed integration: the GP predicts the velocities' changes, the positions follow by the trapezoid rule.
+"""How a particle's state steps from the GP's draws: x + Δ, or MC-PILCO's speed integration.
 
+In speed integration the GP predicts the velocities' changes and the positions follow by the trapezoid rule.
 With positions q and their velocities q̇ in the state, a control period T and the GP's draw Δq̇_t of the
 velocities' change (Amadio et al. 2022, "Model-based policy search using Monte Carlo gradient estimation
 with real systems application", the speed-integration model):
@@ -15,10 +16,35 @@ predictive N(x A + m J, Jᵀ diag(v) J).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import torch
 from torch import Tensor
 
 from qtl.task import Kinematics, check_kinematics
+
+# How a particle's state steps: x + Δ in every dimension, or positions integrated from their velocities.
+INTEGRATION = ("delta", "speed")
+
+
+class DeltaIntegration:
+    """The step x_{t+1} = x_t + Δ in every dimension: the GP models every output."""
+
+    def step(self, x: Tensor, delta: Tensor) -> Tensor:
+        """x_{t+1} `... x D` from x_t and the draws Δ `... x D`."""
+        return x + delta
+
+    def covariance(self, variance: Tensor) -> Tensor:
+        """diag(v) `... x D x D`: the state's covariance from independent draws of variance v `... x D`."""
+        return torch.diag_embed(variance)
+
+    def modelled(self, noise: Tensor) -> Tensor:
+        """The columns of the modelled outputs of ``noise`` `... x D`: all of them."""
+        return noise
+
+    def select_outputs(self, data: dict[str, Tensor]) -> dict[str, Tensor]:
+        """The cache's tensors of the modelled outputs: all of them."""
+        return data
 
 
 class SpeedIntegration:
@@ -57,3 +83,30 @@ class SpeedIntegration:
     def covariance(self, variance: Tensor) -> Tensor:
         """Jᵀ diag(v) J `... x D x D`: the state's covariance from independent draws of variance v `... x E'`."""
         return self.scatter.mT @ (variance[..., :, None] * self.scatter)
+
+    def modelled(self, noise: Tensor) -> Tensor:
+        """The columns `... x E'` of the modelled outputs of ``noise`` `... x D` (each reads its own)."""
+        return noise[..., list(self.outputs)]
+
+    def select_outputs(self, data: dict[str, Tensor]) -> dict[str, Tensor]:
+        """The cache's per-output tensors of the modelled outputs only (the shared inputs as they are)."""
+        return select_outputs(data, self.outputs)
+
+
+def select_outputs(data: dict[str, Tensor], outputs: Sequence[int]) -> dict[str, Tensor]:
+    """The cache's per-output tensors of ``outputs`` only (the shared inputs `... x n x D_in` as they are)."""
+    index = torch.tensor(list(outputs), dtype=torch.long, device=data["beta"].device)
+    output_dim = {"K_inv": -3, "prior_inv": -3, "update_root": -3, "beta": -2, "lengthscales": -2,
+                  "signal_variance": -1, "noise_variance": -1}
+    return {k: v.index_select(output_dim[k], index) if k in output_dim else v for k, v in data.items()}
+
+
+def make_integration(
+    name: str, state_dim: int, kinematics: Kinematics | None, dtype: torch.dtype, device: torch.device | str
+) -> DeltaIntegration | SpeedIntegration:
+    """The step ``name`` (one of INTEGRATION) of a ``state_dim``-D state; ``speed`` needs ``kinematics``."""
+    if name == "delta":
+        return DeltaIntegration()
+    if name != "speed" or kinematics is None:
+        raise ValueError(f"integration {name!r} needs to be delta, or speed with kinematics")
+    return SpeedIntegration(state_dim, kinematics, dtype, device)

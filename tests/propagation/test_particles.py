@@ -15,7 +15,9 @@ from qtl.errors import NonFiniteObjective, UserError
 from qtl.gaussian import Gaussian
 from qtl.policies import LinearPolicy, RBFPolicy, SquashedPolicy
 from qtl.propagation import MomentMatching, Particles
-from qtl.propagation.particles import _gaussian_resample, _safe_sqrt
+from qtl.propagation.objective import SearchReward
+from qtl.propagation.resampling import gaussian_resample as _gaussian_resample
+from qtl.propagation.samplers import safe_sqrt as _safe_sqrt
 from qtl.rewards import AngleDistanceReward
 from tests.helpers import gradcheck_value_wrt_policy_and_start, quadratic_reward, squashed_rbf_parts
 from tests.propagation.reference import assert_marginal_paths
@@ -376,7 +378,8 @@ def test_reward_width_scale_scores_the_same_paths_with_the_widened_reward(gp_fac
 
     plain, wide = particles(), particles(reward_width_scale=scale)
     assert plain.reward is reward and plain.search_reward is reward
-    assert wide.reward is reward and torch.equal(wide.search_reward.weight, reward.weight / scale**2)
+    assert wide.reward is reward and torch.equal(wide.search_reward.reward.weight, reward.weight / scale**2)
+    assert isinstance(wide.search_reward, SearchReward) and wide.search_reward.is_search_reward
     with torch.no_grad():
         states, _ = plain.trajectories(start, 5)
         assert torch.equal(wide.trajectories(start, 5)[0], states)  # the reward does not move the particles
@@ -436,7 +439,7 @@ def test_search_cost_task_scores_the_tasks_cost_mixed_with_its_reward(gp_factory
         want = (0.75 * cost(after) + 0.25 * reward(after)).sum(-1).mean()
         torch.testing.assert_close(prop.expected_return(start, 5), want, rtol=1e-12, atol=0)
         torch.testing.assert_close(prop.rollout(start, 5).value, reward(after).sum(-1).mean(), rtol=1e-12, atol=0)
-    assert torch.equal(widened.search_reward.weight, reward.weight / 4)  # widened ignores the task's cost
+    assert torch.equal(widened.search_reward.reward.weight, reward.weight / 4)  # widened ignores the task's cost
     with pytest.raises(UserError, match="declares no search_reward"):
         Particles(gp, policy, reward, angle_dims=(1,), search_cost="task")
     with pytest.raises(UserError, match=r"propagation\.search_cost must be one of"):

@@ -21,7 +21,8 @@ from qtl.models import GPPosteriorCache, SparseDynamicsGP
 from qtl.policies import RBFPolicy, SquashedPolicy
 from qtl.propagation import Particles
 from qtl.propagation.gp_cache import cache_tensors
-from qtl.propagation.particles import PATHWISE_STREAM, _draw_seed
+from qtl.propagation.noise import PATHWISE_STREAM
+from qtl.propagation.noise import draw_seed as _draw_seed
 from qtl.propagation.pathwise import FeatureDraw, MatheronPaths, draw_features, matheron_paths, path_values
 from tests.conftest import make_gp
 from tests.helpers import (
