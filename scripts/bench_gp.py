@@ -41,7 +41,7 @@ def run_one(n: int, threads: int, seed: int, cold: bool) -> dict:
     import torch
 
     from qtl.models import DynamicsGP, PreviousFit
-    from qtl.models.dynamics_gp import DEFAULT_MAX_ITER, DEFAULT_RESTARTS, WARM_RESTART_TOLERANCE
+    from qtl.models.gp_evidence import DEFAULT_MAX_ITER, DEFAULT_RESTARTS, WARM_RESTART_TOLERANCE
 
     torch.set_num_threads(threads)
     gen = torch.Generator().manual_seed(seed)

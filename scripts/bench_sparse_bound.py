@@ -36,7 +36,7 @@ import benchlib
 from qtl.data import TransitionDataset, gp_training_pairs
 from qtl.features import AngleFeatures
 from qtl.models import GPHyperparameters, SparseDynamicsGP
-from qtl.models.dynamics_gp import DEFAULT_MAX_ITER
+from qtl.models.gp_evidence import DEFAULT_MAX_ITER
 
 INPUT_DIM, OUTPUTS, INDUCING = 6, 4, 300
 NOISE_STD = 0.05

@@ -1,6 +1,7 @@
 """Dynamics models: the GP of the transition function and its hyper-parameters θ."""
 
-from qtl.models.dynamics_gp import DynamicsGP, GPPosteriorCache, exact_gp_settings
+from qtl.models.dynamics_gp import DynamicsGP, GPPosteriorCache
+from qtl.models.exact_settings import exact_gp_settings
 from qtl.models.fitting import AutoFit, ExactFit, ModelFit, SparseFit, log_evidence
 from qtl.models.hyperparameters import GPHyperparameters
 from qtl.models.sparse_gp import SparseDynamicsGP

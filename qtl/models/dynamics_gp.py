@@ -2,11 +2,7 @@
 
 from __future__ import annotations
 
-import contextlib
-import logging
 import math
-import os
-from collections.abc import Iterator
 from dataclasses import dataclass
 
 import gpytorch
@@ -14,13 +10,12 @@ import torch
 from gpytorch.constraints import GreaterThan
 from gpytorch.priors import SmoothedBoxPrior
 from linear_operator.utils.cholesky import psd_safe_cholesky
-from linear_operator.utils.errors import NotPSDError
 from torch import Tensor
 
-from qtl import health
+from qtl.models.exact_settings import exact_gp_settings
+from qtl.models.gp_checkpoint import GPCheckpoint
+from qtl.models.gp_evidence import GPEvidence
 from qtl.models.hyperparameters import GPHyperparameters
-
-log = logging.getLogger(__name__)
 
 # Hard floor on σ_ε² (absolute): keeps K + σ_ε²I factorisable whatever the data scale.
 NOISE_VARIANCE_MIN = 1e-10
@@ -43,42 +38,8 @@ MIN_DATA_STD = 1e-6
 HEURISTIC_SNR = 10.0
 # Fewest training points a model accepts.
 MIN_TRAIN_POINTS = 3
-# Dataset size below which GPyTorch uses Cholesky; far above any exact-GP dataset we handle.
-EXACT_CHOLESKY_SIZE = 10**7
 # Test inputs per GPyTorch prediction call in `predict`.
 PREDICT_CHUNK = 1024
-# Fitting defaults.
-DEFAULT_RESTARTS = 3
-DEFAULT_MAX_ITER = 100
-# L-BFGS stops when the objective (log evidence per data point) changes by less than this.
-FIT_TOLERANCE_CHANGE = 1e-6
-# L-BFGS runs resumed from the best θ after a trial θ of the line search failed numerically, per fit run.
-FIT_RESUMES = 2
-# Standard deviation of the log-space perturbation of θ at each extra restart.
-RESTART_LOG_SCALE = 0.5
-# Warm start: an output whose warm objective (log evidence per point) falls more than this below the
-# previous episode's gets the cold restarts (docs/benchmarks.md, GP section, for the figures behind it).
-WARM_RESTART_TOLERANCE = 0.05
-
-CHECKPOINT_FORMAT = "qtl.DynamicsGP"
-CHECKPOINT_VERSION = 1
-
-
-@contextlib.contextmanager
-def exact_gp_settings() -> Iterator[None]:
-    """GPyTorch settings under which every solve and log-determinant is an exact Cholesky.
-
-    GPyTorch switches to conjugate gradients and Lanczos above 800 points by default; moment
-    matching and evidence maximisation in qtl need exact solves at every dataset size.
-    """
-    with (
-        gpytorch.settings.max_cholesky_size(EXACT_CHOLESKY_SIZE),
-        gpytorch.settings.fast_computations(
-            covar_root_decomposition=False, log_prob=False, solves=False
-        ),
-        gpytorch.settings.fast_pred_var(False),
-    ):
-        yield
 
 
 @dataclass(frozen=True)
@@ -124,7 +85,7 @@ def _check_data(train_x: Tensor, train_y: Tensor) -> None:
             raise ValueError(f"{name} contains {bad} non-finite value(s) (NaN or inf)")
 
 
-class DynamicsGP(gpytorch.models.ExactGP):
+class DynamicsGP(GPEvidence, GPCheckpoint, gpytorch.models.ExactGP):
     """Δ = x_{t+1} − x_t as E independent GPs in one batch (Eq. 1-3).
 
     Zero mean, ARD squared-exponential kernel ``ScaleKernel(RBFKernel)`` with signal variance
@@ -261,185 +222,6 @@ class DynamicsGP(gpytorch.models.ExactGP):
             noise_variance=self.target_var / HEURISTIC_SNR**2,
         )
 
-    # -- evidence maximisation ---------------------------------------------------------------
-
-    def evidence_settings(self) -> contextlib.AbstractContextManager[None]:
-        """The GPyTorch settings of :meth:`log_evidence`: exact Cholesky solves and log-determinants."""
-        return exact_gp_settings()
-
-    def log_evidence(self) -> Tensor:
-        """Per-output log marginal likelihood plus log priors, divided by n: `E`."""
-        return self.gpytorch_log_evidence()
-
-    def gpytorch_log_evidence(self) -> Tensor:
-        """:meth:`log_evidence` as GPyTorch's ``ExactMarginalLogLikelihood`` evaluates it (training mode): `E`."""
-        mll = gpytorch.mlls.ExactMarginalLogLikelihood(self.likelihood, self)
-        with self.evidence_settings():
-            return mll(self(*self.train_inputs), self.train_targets)
-
-    def log_prior(self) -> Tensor:
-        """The registered priors' log densities per output `E`, summed as GPyTorch's marginal likelihood sums them."""
-        total = torch.zeros(self.num_outputs, dtype=self.train_x.dtype, device=self.train_x.device)
-        for _, module, prior, closure, _ in self.named_priors():
-            term = prior.log_prob(closure(module))
-            total = total + term.view(*term.shape[:1], -1).sum(-1)
-        return total
-
-    def fit(
-        self,
-        *,
-        restarts: int = DEFAULT_RESTARTS,
-        max_iter: int = DEFAULT_MAX_ITER,
-        generator: torch.Generator | None = None,
-    ) -> Tensor:
-        """Evidence maximisation: L-BFGS from the current θ and ``restarts − 1`` perturbations of it.
-
-        Each output dimension keeps the θ of its best restart (the objective is separable over
-        outputs). Returns the final per-output objective `E` (log evidence + log prior, / n).
-        """
-        if restarts < 1:
-            raise ValueError(f"restarts must be >= 1, got {restarts}")
-        start = self.hyperparameters
-        best_theta = start.log().clone()  # E x (D + 2)
-        best_value = torch.full((self.num_outputs,), -math.inf, dtype=best_theta.dtype, device=best_theta.device)
-        for attempt in range(restarts):
-            log_theta = start.log()
-            if attempt > 0:
-                noise = torch.randn(
-                    log_theta.shape, generator=generator, dtype=log_theta.dtype
-                ).to(log_theta.device)
-                log_theta = log_theta + RESTART_LOG_SCALE * noise
-            try:
-                self.hyperparameters = GPHyperparameters.from_log(log_theta)
-                value = self._optimise(max_iter)
-            except (NotPSDError, ValueError, RuntimeError) as err:
-                health.count(health.GP_FIT_FAILED)
-                log.warning("GP fit restart %d failed and is discarded: %s", attempt, err)
-                continue
-            found = self.hyperparameters.log()
-            better = torch.isfinite(value) & (value > best_value)
-            best_theta[better] = found[better]
-            best_value = torch.where(better, value, best_value)
-        if not torch.isfinite(best_value).all():
-            failed = (~torch.isfinite(best_value)).nonzero().flatten().tolist()
-            raise RuntimeError(f"evidence maximisation failed for output dimension(s) {failed}")
-        self.hyperparameters = GPHyperparameters.from_log(best_theta)
-        self.fit_objective = best_value
-        return best_value
-
-    def fit_warm(
-        self,
-        start: GPHyperparameters,
-        reference: Tensor,
-        *,
-        restarts: int = DEFAULT_RESTARTS,
-        max_iter: int = DEFAULT_MAX_ITER,
-        generator: torch.Generator | None = None,
-        tolerance: float = WARM_RESTART_TOLERANCE,
-    ) -> Tensor:
-        """Evidence maximisation from ``start`` (the previous θ_p); cold restarts only where it falls short.
-
-        One L-BFGS run from ``start``; an output whose objective is below ``reference`` `E` (the
-        previous fit's objective per point) minus ``tolerance``, or not finite, is refitted as
-        :meth:`fit` does from the current θ (the cold start: heuristic or θ_s) and its perturbations,
-        on a model of those outputs alone (the objective is separable over outputs); each output keeps
-        the better θ (every output short: the cold fit of this model). No output short: no restart runs.
-        Returns the per-output objective `E`.
-        """
-        cold = self.hyperparameters
-        cold_state = {name: value.clone() for name, value in self.state_dict().items()}  # θ bit for bit
-        try:
-            self.hyperparameters = start
-            value = self._optimise(max_iter)
-        except (NotPSDError, ValueError, RuntimeError) as err:
-            health.count(health.GP_FIT_FAILED)
-            log.warning("warm-started GP fit failed, every output is refitted cold: %s", err)
-            value = torch.full((self.num_outputs,), -math.inf, dtype=cold.lengthscales.dtype,
-                               device=cold.lengthscales.device)
-        best = self.hyperparameters.log() if torch.isfinite(value).any() else cold.log()
-        short = ~torch.isfinite(value) | (value < reference.to(value) - tolerance)
-        if short.any():
-            chosen = short.nonzero().flatten()
-            log.info("warm GP fit short of the previous objective for output(s) %s: cold restarts there",
-                     chosen.tolist())
-            if short.all():  # every output: the cold fit of this model, from exactly its cold θ
-                self.load_state_dict(cold_state)
-                self.prediction_strategy = None
-                part = self
-            else:
-                part = DynamicsGP(self.train_x, self.train_y[:, chosen], cold.select(chosen), dtype=self.train_x.dtype)
-            try:
-                part_value = part.fit(restarts=restarts, max_iter=max_iter, generator=generator)
-            except RuntimeError as err:
-                health.count(health.GP_FIT_FAILED)
-                log.warning("cold restarts failed: %s", err)
-                part_value = torch.full_like(value[chosen], -math.inf)
-            better = torch.isfinite(part_value) & (part_value > value[chosen])
-            log.info("cold restarts: the cold fit kept for output(s) %s, the warm fit for %s",
-                     chosen[better].tolist(), chosen[~better].tolist())
-            if part is self and better.all():  # the cold fit won everywhere: keep its θ as it left it
-                return part_value
-            best[chosen[better]] = part.hyperparameters.log()[better]
-            value[chosen[better]] = part_value[better]
-        if not torch.isfinite(value).all():
-            failed = (~torch.isfinite(value)).nonzero().flatten().tolist()
-            raise RuntimeError(f"evidence maximisation failed for output dimension(s) {failed}")
-        self.hyperparameters = GPHyperparameters.from_log(best)
-        self.fit_objective = value
-        return value
-
-    def _optimise(self, max_iter: int) -> Tensor:
-        """L-BFGS on the summed objective for at most ``max_iter`` iterations; returns the per-output objective `E`.
-
-        A trial θ of the line search whose objective fails numerically (a factorisation error, or a
-        non-finite value; e.g. a step to ℓ ~ e⁻²⁰⁰ on a flat direction) does not end the run: the θ of
-        the best objective evaluated is restored and a fresh L-BFGS (its first step short) goes on with
-        the iterations left, at most ``FIT_RESUMES`` times. A failure before any finite objective raises.
-        """
-        self.train()
-        self.likelihood.train()
-        params = [p for p in self.parameters() if p.requires_grad]
-        best: list = [-math.inf, None]  # the best summed objective evaluated, and its parameters
-
-        def closure() -> Tensor:
-            optimiser.zero_grad()
-            total = self.log_evidence().sum()
-            value = float(total.detach())
-            if not math.isfinite(value):
-                raise RuntimeError(f"the log evidence is not finite ({value})")
-            (-total).backward()
-            if value > best[0]:
-                best[0], best[1] = value, [p.detach().clone() for p in params]
-            return -total
-
-        left = max_iter
-        for resume in range(FIT_RESUMES + 1):
-            optimiser = torch.optim.LBFGS(
-                params, lr=1.0, max_iter=left, line_search_fn="strong_wolfe",
-                tolerance_change=FIT_TOLERANCE_CHANGE,
-            )
-            try:
-                optimiser.step(closure)
-                break
-            except (NotPSDError, ValueError, RuntimeError) as err:
-                if best[1] is None:
-                    raise
-                left -= optimiser.state[params[0]].get("n_iter", 0)
-                health.count(health.GP_FIT_FAILED)
-                with torch.no_grad():
-                    for param, value in zip(params, best[1], strict=True):
-                        param.copy_(value)
-                if resume == FIT_RESUMES or left <= 0:
-                    log.warning("GP fit: a line-search step failed (%s); it ends at the best θ evaluated", err)
-                    break
-                log.warning("GP fit: a line-search step failed (%s); L-BFGS resumes from the best θ evaluated "
-                            "(%d iterations left)", err, left)
-        with torch.no_grad():
-            value = self.log_evidence()
-        self.eval()
-        self.likelihood.eval()
-        return value.detach()
-
     # -- prediction --------------------------------------------------------------------------
 
     def predict(self, x: Tensor, *, include_noise: bool = False) -> tuple[Tensor, Tensor]:
@@ -478,58 +260,3 @@ class DynamicsGP(gpytorch.models.ExactGP):
             beta = torch.cholesky_solve(self.train_targets.unsqueeze(-1), chol).squeeze(-1)
             K_inv = torch.cholesky_inverse(chol)
         return GPPosteriorCache(inputs=self.train_x, K_inv=K_inv, beta=beta, hyperparameters=theta)
-
-    # -- persistence -------------------------------------------------------------------------
-
-    def state(self) -> dict:
-        """Everything needed to rebuild this model (data and θ), as tensors and primitives."""
-        theta = self.hyperparameters
-        return {
-            "format": CHECKPOINT_FORMAT,
-            "version": CHECKPOINT_VERSION,
-            "train_x": self.train_x.detach().cpu(),
-            "train_y": self.train_y.detach().cpu(),
-            "lengthscales": theta.lengthscales.cpu(),
-            "signal_variance": theta.signal_variance.cpu(),
-            "noise_variance": theta.noise_variance.cpu(),
-        }
-
-    @classmethod
-    def from_state(
-        cls, state: dict, *, dtype: torch.dtype = torch.float64, device: torch.device | str = "cpu"
-    ) -> DynamicsGP:
-        """Rebuild a model from :meth:`state` on ``device``; a malformed state raises ValueError."""
-        if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT:
-            raise ValueError("not a DynamicsGP state (missing or wrong 'format' entry)")
-        if state.get("version") != CHECKPOINT_VERSION:
-            raise ValueError(f"unsupported DynamicsGP state version {state.get('version')!r}")
-        missing = {"train_x", "train_y", "lengthscales", "signal_variance", "noise_variance"}
-        missing -= state.keys()
-        if missing:
-            raise ValueError(f"DynamicsGP state lacks {sorted(missing)}")
-        theta = GPHyperparameters(
-            state["lengthscales"].to(dtype),
-            state["signal_variance"].to(dtype),
-            state["noise_variance"].to(dtype),
-        )
-        return cls(state["train_x"].to(device), state["train_y"].to(device), theta, dtype=dtype)
-
-    def save(self, path: str | os.PathLike) -> None:
-        """Write data and θ to ``path`` (an ExactGP's state_dict alone lacks the data)."""
-        torch.save(self.state(), path)
-
-    @classmethod
-    def load(
-        cls, path: str | os.PathLike, *, dtype: torch.dtype = torch.float64, device: torch.device | str = "cpu"
-    ) -> DynamicsGP:
-        """Read a model written by :meth:`save` onto ``device``; a missing or corrupt file raises a clear error."""
-        if not os.path.isfile(path):
-            raise FileNotFoundError(f"no DynamicsGP checkpoint at {os.fspath(path)!r}")
-        try:
-            state = torch.load(path, map_location="cpu", weights_only=True)
-        except Exception as err:  # torch raises many types for a damaged file
-            raise ValueError(f"corrupt DynamicsGP checkpoint {os.fspath(path)!r}: {err}") from err
-        try:
-            return cls.from_state(state, dtype=dtype, device=device)
-        except ValueError as err:
-            raise ValueError(f"corrupt DynamicsGP checkpoint {os.fspath(path)!r}: {err}") from err

@@ -9,7 +9,8 @@ from typing import Protocol
 import torch
 from torch import Tensor
 
-from qtl.models.dynamics_gp import DEFAULT_MAX_ITER, DEFAULT_RESTARTS, DynamicsGP
+from qtl.models.dynamics_gp import DynamicsGP
+from qtl.models.gp_evidence import DEFAULT_MAX_ITER, DEFAULT_RESTARTS
 from qtl.models.hyperparameters import GPHyperparameters
 from qtl.models.sparse_gp import DEFAULT_INDUCING, DEFAULT_JITTER, SparseDynamicsGP
 from qtl.models.warm_start import PreviousFit

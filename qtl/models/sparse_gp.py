@@ -39,16 +39,9 @@ from torch import Tensor
 
 from qtl import health
 from qtl.models.collapsed_bound import collapsed_bound
-from qtl.models.dynamics_gp import (
-    DEFAULT_MAX_ITER,
-    DEFAULT_RESTARTS,
-    EXACT_CHOLESKY_SIZE,
-    RESTART_LOG_SCALE,
-    WARM_RESTART_TOLERANCE,
-    DynamicsGP,
-    GPPosteriorCache,
-    exact_gp_settings,
-)
+from qtl.models.dynamics_gp import DynamicsGP, GPPosteriorCache
+from qtl.models.exact_settings import EXACT_CHOLESKY_SIZE, exact_gp_settings
+from qtl.models.gp_evidence import DEFAULT_MAX_ITER, DEFAULT_RESTARTS, RESTART_LOG_SCALE, WARM_RESTART_TOLERANCE
 from qtl.models.hyperparameters import GPHyperparameters
 
 log = logging.getLogger(__name__)

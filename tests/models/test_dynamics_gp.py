@@ -11,7 +11,8 @@ from linear_operator.utils.errors import NotPSDError
 
 from qtl import health
 from qtl.models import DynamicsGP, GPHyperparameters, exact_gp_settings
-from qtl.models.dynamics_gp import FIT_RESUMES, NOISE_VARIANCE_MIN
+from qtl.models.dynamics_gp import NOISE_VARIANCE_MIN
+from qtl.models.gp_evidence import FIT_RESUMES
 
 
 def smooth_function(x: torch.Tensor) -> torch.Tensor:

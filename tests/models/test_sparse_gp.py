@@ -13,7 +13,7 @@ from torch import Tensor
 from qtl.gaussian import Gaussian
 from qtl.kernels import SEKernelMoments
 from qtl.models import DynamicsGP, GPHyperparameters, SparseDynamicsGP
-from qtl.models.dynamics_gp import exact_gp_settings
+from qtl.models.exact_settings import exact_gp_settings
 from qtl.policies import LinearPolicy, SquashedPolicy
 from qtl.propagation import MomentMatching
 from qtl.transfer import leave_one_out, task_compliance

@@ -9,7 +9,7 @@ import torch
 from torch import Tensor
 
 from qtl.models import DynamicsGP, ExactFit, GPHyperparameters, PreviousFit, SparseDynamicsGP, SparseFit
-from qtl.models.dynamics_gp import WARM_RESTART_TOLERANCE
+from qtl.models.gp_evidence import WARM_RESTART_TOLERANCE
 
 N, EPISODE, D, E = 40, 8, 3, 2
 MAX_ITER = 20

@@ -1,0 +1,70 @@
+"""Persistence of the GP dynamics model: its data and θ as a state dict, on disk."""
+
+from __future__ import annotations
+
+import os
+from typing import Self
+
+import torch
+
+from qtl.models.hyperparameters import GPHyperparameters
+
+CHECKPOINT_FORMAT = "qtl.DynamicsGP"
+CHECKPOINT_VERSION = 1
+
+
+class GPCheckpoint:
+    """Saving and loading of :class:`~qtl.models.DynamicsGP` (a mixin): ``state``/``from_state``, ``save``/``load``."""
+
+    def state(self) -> dict:
+        """Everything needed to rebuild this model (data and θ), as tensors and primitives."""
+        theta = self.hyperparameters
+        return {
+            "format": CHECKPOINT_FORMAT,
+            "version": CHECKPOINT_VERSION,
+            "train_x": self.train_x.detach().cpu(),
+            "train_y": self.train_y.detach().cpu(),
+            "lengthscales": theta.lengthscales.cpu(),
+            "signal_variance": theta.signal_variance.cpu(),
+            "noise_variance": theta.noise_variance.cpu(),
+        }
+
+    @classmethod
+    def from_state(
+        cls, state: dict, *, dtype: torch.dtype = torch.float64, device: torch.device | str = "cpu"
+    ) -> Self:
+        """Rebuild a model from :meth:`state` on ``device``; a malformed state raises ValueError."""
+        if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT:
+            raise ValueError("not a DynamicsGP state (missing or wrong 'format' entry)")
+        if state.get("version") != CHECKPOINT_VERSION:
+            raise ValueError(f"unsupported DynamicsGP state version {state.get('version')!r}")
+        missing = {"train_x", "train_y", "lengthscales", "signal_variance", "noise_variance"}
+        missing -= state.keys()
+        if missing:
+            raise ValueError(f"DynamicsGP state lacks {sorted(missing)}")
+        theta = GPHyperparameters(
+            state["lengthscales"].to(dtype),
+            state["signal_variance"].to(dtype),
+            state["noise_variance"].to(dtype),
+        )
+        return cls(state["train_x"].to(device), state["train_y"].to(device), theta, dtype=dtype)
+
+    def save(self, path: str | os.PathLike) -> None:
+        """Write data and θ to ``path`` (an ExactGP's state_dict alone lacks the data)."""
+        torch.save(self.state(), path)
+
+    @classmethod
+    def load(
+        cls, path: str | os.PathLike, *, dtype: torch.dtype = torch.float64, device: torch.device | str = "cpu"
+    ) -> Self:
+        """Read a model written by :meth:`save` onto ``device``; a missing or corrupt file raises a clear error."""
+        if not os.path.isfile(path):
+            raise FileNotFoundError(f"no DynamicsGP checkpoint at {os.fspath(path)!r}")
+        try:
+            state = torch.load(path, map_location="cpu", weights_only=True)
+        except Exception as err:  # torch raises many types for a damaged file
+            raise ValueError(f"corrupt DynamicsGP checkpoint {os.fspath(path)!r}: {err}") from err
+        try:
+            return cls.from_state(state, dtype=dtype, device=device)
+        except ValueError as err:
+            raise ValueError(f"corrupt DynamicsGP checkpoint {os.fspath(path)!r}: {err}") from err
