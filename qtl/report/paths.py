@@ -32,7 +32,7 @@ def recorded_path(path: str | os.PathLike) -> str:
 
 def recorded_override(override: str) -> str:
     """A Hydra override ``key=value`` with an absolute path as its value recorded as :func:`recorded_path` does (so
-    ``sweep.root=/home/me/qtl/docs/experiments/cartpole`` reads ``sweep.root=docs/experiments/cartpole``)."""
+    ``sweep.root=<the clone, absolute>/docs/experiments/cartpole`` reads ``sweep.root=docs/experiments/cartpole``)."""
     key, sep, value = override.partition("=")
     if not sep or not os.path.isabs(os.path.expanduser(value)):
         return override
