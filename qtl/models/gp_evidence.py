@@ -91,12 +91,7 @@ class GPEvidence:
             better = torch.isfinite(value) & (value > best_value)
             best_theta[better] = found[better]
             best_value = torch.where(better, value, best_value)
-        if not torch.isfinite(best_value).all():
-            failed = (~torch.isfinite(best_value)).nonzero().flatten().tolist()
-            raise RuntimeError(f"evidence maximisation failed for output dimension(s) {failed}")
-        self.hyperparameters = GPHyperparameters.from_log(best_theta)
-        self.fit_objective = best_value
-        return best_value
+        return self._keep_best(best_theta, best_value)
 
     def fit_warm(
         self,
@@ -152,10 +147,14 @@ class GPEvidence:
                 return part_value
             best[chosen[better]] = part.hyperparameters.log()[better]
             value[chosen[better]] = part_value[better]
+        return self._keep_best(best, value)
+
+    def _keep_best(self, log_theta: Tensor, value: Tensor) -> Tensor:
+        """Set θ from the best log θ `E x (D + 2)` and return its objective `E`; an error where an output has none."""
         if not torch.isfinite(value).all():
             failed = (~torch.isfinite(value)).nonzero().flatten().tolist()
             raise RuntimeError(f"evidence maximisation failed for output dimension(s) {failed}")
-        self.hyperparameters = GPHyperparameters.from_log(best)
+        self.hyperparameters = GPHyperparameters.from_log(log_theta)
         self.fit_objective = value
         return value
 
