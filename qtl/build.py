@@ -14,7 +14,7 @@ from hydra.utils import get_class, instantiate
 from omegaconf import DictConfig, OmegaConf
 from torch import Tensor, nn
 
-from qtl.config.validate import check_dropout, check_lr_scales, checked_task
+from qtl.config.validate import check_dropout, check_lr_scales, check_transfer, checked_task
 from qtl.data import TransitionDataset, gp_training_pairs
 from qtl.episodes import Actor, policy_actor
 from qtl.errors import UserError
@@ -252,5 +252,6 @@ def _with_kinematics(make_propagator: PropagatorFactory, task: Task, cfg: DictCo
 
 def transfer_plan(cfg: DictConfig, parts: Parts) -> TransferPlan:
     """The run's transfer plan (``cfg.transfer`` with the ``rule``): the source run loaded and checked."""
-    return TransferPlan(cfg.transfer, instantiate_checked(cfg.rule), parts.task, parts.features, parts.dtype,
-                        parts.device)
+    rule = instantiate_checked(cfg.rule)
+    check_transfer(cfg.transfer, rule)
+    return TransferPlan(cfg.transfer, rule, parts.task, parts.features, parts.dtype, parts.device)

@@ -242,13 +242,9 @@ def _plain(value: Any) -> Any:
 def env_kwargs(env_id: str, env_cfg: dict[str, Any], horizon: int, action_repeat: int = 1) -> dict[str, Any]:
     """``env_cfg`` plus the one horizon: the env's ``horizon`` kwarg if it has one, else gymnasium's time limit.
 
-    The learner's ``horizon`` steps are ``horizon × action_repeat`` steps of the env.
+    The learner's ``horizon`` steps are ``horizon × action_repeat`` steps of the env (an ``env_cfg`` horizon that
+    disagrees is refused by ``qtl.config.validate.checked_task``; this one wins).
     """
-    if "horizon" in env_cfg and int(env_cfg["horizon"]) != horizon:
-        raise TaskError(
-            f"task.env.horizon={env_cfg['horizon']} disagrees with task.horizon={horizon}: set task.horizon only "
-            "(it is the env's horizon too)"
-        )
     params = constructor_parameters(env_id)
     if params is not None and "horizon" in params:
         return {**env_cfg, "horizon": horizon * action_repeat}

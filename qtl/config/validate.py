@@ -20,7 +20,7 @@ from torch import nn
 
 from envs.rewards import SaturatingReward
 from qtl.config.groups import GROUP_SCHEMAS, SCHEMA_BY_TARGET
-from qtl.errors import TaskError, UserError
+from qtl.errors import TaskError, TransferError, UserError
 from qtl.task import (
     DEFAULT_START_MIN_STD,
     SEARCH_COST_ANGLES,
@@ -29,6 +29,8 @@ from qtl.task import (
     check_kinematics,
     env_kwargs,
 )
+from qtl.transfer.compliance import BANDWIDTHS, COMPLIANCES, DEFAULT_COMPLIANCE
+from qtl.transfer.rules import HyperparameterRule
 
 FLATTEN_HINT = (
     "flatten it in your own env registration (gymnasium.wrappers.FlattenObservation for observations) "
@@ -92,6 +94,49 @@ def check_lr_scales(search: object, initial_policy: Callable[[], nn.Module]) -> 
         raise UserError(str(err)) from None
 
 
+# -- transfer -------------------------------------------------------------------------------------------
+
+
+def check_transfer(cfg: Mapping[str, Any], rule: HyperparameterRule) -> None:
+    """The ``transfer`` node agrees with itself and with ``rule``: a one-line TransferError otherwise, before any work.
+
+    The source run itself (its files, task family and shapes) is checked where it is loaded
+    (:class:`qtl.transfer.SourceRun`).
+    """
+    transfer_theta = bool(cfg.get("hyperparameters", True))
+    min_compliance, temperature = cfg.get("min_compliance"), cfg.get("compliance_temperature")
+    if cfg.get("source") is None:
+        if rule.uses_source:
+            raise TransferError(f"rule={rule.name} starts from the source's θ_s: give transfer.source=<run dir>")
+        if bool(cfg.get("policy", False)):
+            raise TransferError("transfer.policy=true needs a source run: give transfer.source=<run dir>")
+        if min_compliance is not None:
+            raise TransferError("transfer.min_compliance needs a source run: give transfer.source=<run dir>")
+    else:
+        if transfer_theta and not rule.uses_source:
+            raise TransferError(
+                "transfer.hyperparameters=true but rule=none ignores θ_s: choose rule=free|forgetting|bayesian "
+                "(or an approach=... preset), or set transfer.hyperparameters=false"
+            )
+        if rule.uses_source and not transfer_theta:
+            raise TransferError(f"rule={rule.name} updates θ_s, but transfer.hyperparameters=false")
+    if min_compliance is not None and not 0.0 <= float(min_compliance) <= 1.0:
+        raise TransferError(f"transfer.min_compliance must be in [0, 1], got {min_compliance}")
+    if temperature is not None and not float(temperature) > 0:
+        raise TransferError(f"transfer.compliance_temperature must be > 0, got {temperature}")
+    resolution = float(cfg.get("compliance_resolution") or 0.0)
+    if not (math.isfinite(resolution) and resolution >= 0):
+        raise TransferError(f"transfer.compliance_resolution must be >= 0, got {resolution}")
+    name, bandwidth = str(cfg.get("compliance") or DEFAULT_COMPLIANCE), str(cfg.get("compliance_bandwidth") or "scott")
+    if name not in COMPLIANCES:
+        raise TransferError(f"transfer.compliance must be one of {', '.join(sorted(COMPLIANCES))}, got {name!r}")
+    if bandwidth not in BANDWIDTHS:
+        raise TransferError(f"transfer.compliance_bandwidth must be one of {', '.join(BANDWIDTHS)}, got {bandwidth!r}")
+    if name == "kernel" and temperature is not None:
+        raise TransferError("transfer.compliance_temperature tempers the likelihood ratio only: unset it, or set "
+                            "transfer.compliance=likelihood_ratio")
+
+
 # -- the task -------------------------------------------------------------------------------------------
 
 
@@ -113,6 +158,11 @@ def checked_task(cfg: Mapping[str, Any]) -> Task:
         raise TaskError(
             f"task.success.last_steps={success['last_steps']} is longer than task.horizon={horizon}: "
             f"set task.success.last_steps to at most {horizon}"
+        )
+    if "horizon" in env_cfg and int(env_cfg["horizon"]) != horizon:
+        raise TaskError(
+            f"task.env.horizon={env_cfg['horizon']} disagrees with task.horizon={horizon}: set task.horizon only "
+            "(it is the env's horizon too)"
         )
     kwargs = env_kwargs(env_id, env_cfg, horizon, action_repeat)
     try:

@@ -14,12 +14,7 @@ from qtl.errors import TransferError
 from qtl.features import AngleFeatures
 from qtl.models import DynamicsGP, GPHyperparameters
 from qtl.task import Task
-from qtl.transfer.compliance import (
-    BANDWIDTHS,
-    COMPLIANCES,
-    DEFAULT_COMPLIANCE,
-    compliance_value,
-)
+from qtl.transfer.compliance import DEFAULT_COMPLIANCE, compliance_value
 from qtl.transfer.rules import HyperparameterRule
 from qtl.transfer.source import SourceRun
 
@@ -29,10 +24,10 @@ log = logging.getLogger(__name__)
 class TransferPlan:
     """The transfer settings of a run, checked, and the state of its θ across episodes.
 
-    Built from the ``transfer`` config node and the instantiated ``rule``; every inconsistency
-    (a rule that needs θ_s without a source, a source of another task family or other
-    dimensions, a compliance gate outside [0, 1], ...) raises :class:`TransferError` here,
-    before any episode runs. Without a source it is PILCO's plan: θ_i = θ_p_i, ψ_0 random.
+    Built from the ``transfer`` config node, checked first by :func:`qtl.config.validate.check_transfer`, and
+    the instantiated ``rule``; the source run is loaded here and must match the task (a
+    :class:`TransferError` before any episode runs otherwise). Without a source it is PILCO's plan:
+    θ_i = θ_p_i, ψ_0 random.
     """
 
     def __init__(
@@ -54,38 +49,10 @@ class TransferPlan:
         self.bandwidth = str(cfg.get("compliance_bandwidth") or "scott")
         source_dir = cfg.get("source")
         if source_dir is None:
-            if rule.uses_source:
-                raise TransferError(f"rule={rule.name} starts from the source's θ_s: give transfer.source=<run dir>")
-            if self.transfer_policy:
-                raise TransferError("transfer.policy=true needs a source run: give transfer.source=<run dir>")
-            if self.min_compliance is not None:
-                raise TransferError("transfer.min_compliance needs a source run: give transfer.source=<run dir>")
             self.source, self.transfer_theta = None, False
         else:
-            if self.transfer_theta and not rule.uses_source:
-                raise TransferError(
-                    "transfer.hyperparameters=true but rule=none ignores θ_s: choose rule=free|forgetting|bayesian "
-                    "(or an approach=... preset), or set transfer.hyperparameters=false"
-                )
-            if rule.uses_source and not self.transfer_theta:
-                raise TransferError(f"rule={rule.name} updates θ_s, but transfer.hyperparameters=false")
             self.source = SourceRun.load(source_dir)
             self.source.check_compatible(task)
-        if self.min_compliance is not None and not 0.0 <= float(self.min_compliance) <= 1.0:
-            raise TransferError(f"transfer.min_compliance must be in [0, 1], got {self.min_compliance}")
-        if self.temperature is not None and not float(self.temperature) > 0:
-            raise TransferError(f"transfer.compliance_temperature must be > 0, got {self.temperature}")
-        if not (math.isfinite(self.resolution) and self.resolution >= 0):
-            raise TransferError(f"transfer.compliance_resolution must be >= 0, got {self.resolution}")
-        if self.compliance_name not in COMPLIANCES:
-            raise TransferError(f"transfer.compliance must be one of {', '.join(sorted(COMPLIANCES))}, "
-                                f"got {self.compliance_name!r}")
-        if self.bandwidth not in BANDWIDTHS:
-            raise TransferError(f"transfer.compliance_bandwidth must be one of {', '.join(BANDWIDTHS)}, "
-                                f"got {self.bandwidth!r}")
-        if self.compliance_name == "kernel" and self.temperature is not None:
-            raise TransferError("transfer.compliance_temperature tempers the likelihood ratio only: unset it, or set "
-                                "transfer.compliance=likelihood_ratio")
         self.device = torch.device(device)
         self._source_model = None if self.source is None else self.source.model(features, dtype, device)
         self.theta: GPHyperparameters | None = None  # θ_{i−1}: what the previous model used
