@@ -1,9 +1,11 @@
 """Gymnasium environments of the paper's transfer benchmarks, registered under ``qtl/``.
 
 Importing this package registers the ids (lazily: an env module is imported by
-``gymnasium.make``, or on first access to one of its names here); it never imports :mod:`qtl`.
+``gymnasium.make``, or on first access to one of its names here); it imports nothing of :mod:`qtl` but
+its root package (a version string), and no torch. Installed as ``qtl.envs``: the directory is ``envs/``.
 
-    >>> import gymnasium, envs
+    >>> import gymnasium
+    >>> from qtl import envs
     >>> env = gymnasium.make("qtl/CartPoleSwingUp-v0", pole_mass=2.0)
     >>> envs.CartPoleSwingUpEnv is type(env.unwrapped)
     True
@@ -16,12 +18,12 @@ from typing import TYPE_CHECKING, Any
 
 import gymnasium
 
-from envs.rewards import SaturatingReward, augment_angles
+from qtl.envs.rewards import SaturatingReward, augment_angles
 
 if TYPE_CHECKING:
-    from envs.aircraft import Autopilot, HelicopterEnv, QuadcopterEnv, ground_effect_factor
-    from envs.cartpole import CartPoleSwingUpEnv
-    from envs.mountain_car import MountainCarEnv
+    from qtl.envs.aircraft import Autopilot, HelicopterEnv, QuadcopterEnv, ground_effect_factor
+    from qtl.envs.cartpole import CartPoleSwingUpEnv
+    from qtl.envs.mountain_car import MountainCarEnv
 
 __all__ = [
     "ENV_IDS",
@@ -36,21 +38,21 @@ __all__ = [
 ]
 
 ENV_IDS: dict[str, str] = {
-    "qtl/CartPoleSwingUp-v0": "envs.cartpole:CartPoleSwingUpEnv",
-    "qtl/MountainCar-v0": "envs.mountain_car:MountainCarEnv",
-    "qtl/Quadcopter-v0": "envs.aircraft:QuadcopterEnv",
-    "qtl/Helicopter-v0": "envs.aircraft:HelicopterEnv",
+    "qtl/CartPoleSwingUp-v0": "qtl.envs.cartpole:CartPoleSwingUpEnv",
+    "qtl/MountainCar-v0": "qtl.envs.mountain_car:MountainCarEnv",
+    "qtl/Quadcopter-v0": "qtl.envs.aircraft:QuadcopterEnv",
+    "qtl/Helicopter-v0": "qtl.envs.aircraft:HelicopterEnv",
 }
 
 # Public names defined in the env modules, imported on first access (PEP 562) so that
-# `import envs` costs no more than gymnasium and numpy.
+# `import qtl.envs` costs no more than gymnasium and numpy.
 _LAZY: dict[str, str] = {
-    "CartPoleSwingUpEnv": "envs.cartpole",
-    "MountainCarEnv": "envs.mountain_car",
-    "QuadcopterEnv": "envs.aircraft",
-    "HelicopterEnv": "envs.aircraft",
-    "Autopilot": "envs.aircraft",
-    "ground_effect_factor": "envs.aircraft",
+    "CartPoleSwingUpEnv": "qtl.envs.cartpole",
+    "MountainCarEnv": "qtl.envs.mountain_car",
+    "QuadcopterEnv": "qtl.envs.aircraft",
+    "HelicopterEnv": "qtl.envs.aircraft",
+    "Autopilot": "qtl.envs.aircraft",
+    "ground_effect_factor": "qtl.envs.aircraft",
 }
 
 

@@ -25,9 +25,9 @@ import gymnasium
 import numpy as np
 from gymnasium import spaces
 
-from envs import _render
-from envs._rk4 import n_substeps, rk4_step
-from envs._validation import (
+from qtl.envs import _render
+from qtl.envs._rk4 import n_substeps, rk4_step
+from qtl.envs._validation import (
     action_vector,
     check_render_mode,
     finite_array,
@@ -38,7 +38,7 @@ from envs._validation import (
     require,
     state_option,
 )
-from envs.rewards import SaturatingReward
+from qtl.envs.rewards import SaturatingReward
 
 __all__ = [
     "AircraftEnv",

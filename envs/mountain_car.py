@@ -9,8 +9,8 @@ import gymnasium
 import numpy as np
 from gymnasium import spaces
 
-from envs import _render
-from envs._validation import (
+from qtl.envs import _render
+from qtl.envs._validation import (
     action_vector,
     check_render_mode,
     finite_array,
@@ -21,7 +21,7 @@ from envs._validation import (
     require,
     state_option,
 )
-from envs.rewards import SaturatingReward
+from qtl.envs.rewards import SaturatingReward
 
 STATE_DIM = 2
 ACTION_DIM = 1

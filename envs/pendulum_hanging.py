@@ -1,4 +1,6 @@
-"""gymnasium's Pendulum-v1 started hanging, as a user would bring it (id ``envs.pendulum_hanging:PendulumHanging-v1``).
+"""gymnasium's Pendulum-v1 started hanging, as a user would bring it.
+
+Its id is ``qtl.envs.pendulum_hanging:PendulumHanging-v1``.
 
 Importing this module registers ``PendulumHanging-v1`` (gymnasium imports it for the ``module:EnvId``
 id form; :mod:`envs` does not). The dynamics, reward, observation, spaces and time limit are

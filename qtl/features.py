@@ -1,6 +1,6 @@
 """Angle features: θ ↦ (sin θ, cos θ) on states and on Gaussian state distributions (PILCO's gTrig).
 
-The convention is the project's one (``envs.rewards.augment_angles``): the augmented vector is
+The convention is the project's one (``qtl.envs.rewards.augment_angles``): the augmented vector is
 the non-angle dimensions in their order, then ``sin θ_a, cos θ_a`` for each ``a`` in
 ``angle_dims``; the raw angle is dropped.
 """

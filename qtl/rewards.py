@@ -1,7 +1,7 @@
 """The saturating reward of Eq. 13 in torch: per state, and its expectation under a Gaussian state.
 
 `r(x) = exp(−½ (y − y*)ᵀ W (y − y*))`, y the angle-augmented state (``qtl.features``), built
-from the same declarative spec the environments use (``envs.rewards.SaturatingReward``:
+from the same declarative spec the environments use (``qtl.envs.rewards.SaturatingReward``:
 ``state_dim``, ``angle_dims``, ``target`` y*, ``weight_matrix`` W with the width folded in).
 """
 
@@ -24,7 +24,7 @@ WEIGHT_RANK_TOL = 1e-12
 
 
 class RewardSpec(Protocol):
-    """A declarative saturating reward (as ``envs.rewards.SaturatingReward``): what :meth:`from_spec` reads."""
+    """A declarative saturating reward (as ``qtl.envs.rewards.SaturatingReward``): what :meth:`from_spec` reads."""
 
     @property
     def state_dim(self) -> int:

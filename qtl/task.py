@@ -14,9 +14,9 @@ import numpy as np
 import torch
 from gymnasium.envs.registration import EnvSpec, load_env_creator
 
-import envs  # noqa: F401  (registers the qtl/ environment ids)
-from envs.rewards import SaturatingReward, augment_angles
+import qtl.envs  # noqa: F401  (registers the qtl/ environment ids)
 from qtl.env_wrappers import ActionRepeat, CenteredAction
+from qtl.envs.rewards import SaturatingReward, augment_angles
 from qtl.errors import TaskError
 from qtl.gaussian import Gaussian
 

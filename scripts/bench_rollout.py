@@ -27,8 +27,8 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import benchlib
 
-from envs.rewards import SaturatingReward
 from qtl.build import DTYPES
+from qtl.envs.rewards import SaturatingReward
 from qtl.features import AngleFeatures
 from qtl.gaussian import Gaussian
 from qtl.kernels import moments as kernel_moments

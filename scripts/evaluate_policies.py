@@ -28,7 +28,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-import envs  # noqa: E402,F401  (registers the qtl/ environments)
+import qtl.envs  # noqa: E402,F401  (registers the qtl/ environments)
 from qtl.checkpoint import CHECKPOINT_DIR, episodes_done  # noqa: E402
 from qtl.episodes import run_episode  # noqa: E402
 from qtl.report.discover import Experiment, discover  # noqa: E402

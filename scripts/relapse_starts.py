@@ -34,7 +34,7 @@ import yaml
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-import envs  # noqa: E402,F401  (registers the qtl/ environments)
+import qtl.envs  # noqa: E402,F401  (registers the qtl/ environments)
 from qtl.checkpoint import CHECKPOINT_DIR, episodes_done, latest_checkpoint, load_checkpoint  # noqa: E402
 from qtl.metrics import first_success  # noqa: E402
 from qtl.report.discover import discover  # noqa: E402

@@ -39,7 +39,7 @@ if [ "$mujoco" = 1 ]; then
   .venv/bin/python -c 'import mujoco' 2>/dev/null || missing_mujoco=1
 fi
 if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ] || [ "$missing_mujoco" = 1 ] \
-    || ! .venv/bin/python -c 'import qtl, envs' 2>/dev/null; then
+    || ! .venv/bin/python -c 'import qtl, qtl.envs' 2>/dev/null; then
   "${pip[@]}" install -e ".[$extras]"
   echo "$want" > "$stamp"
 fi

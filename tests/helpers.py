@@ -10,8 +10,8 @@ from hydra import compose, initialize_config_module
 from omegaconf import DictConfig
 from torch import Tensor
 
-from envs.rewards import SaturatingReward
 from qtl.config import register_configs
+from qtl.envs.rewards import SaturatingReward
 from qtl.gaussian import Gaussian
 from qtl.policies import RBFPolicy, SquashedPolicy
 from qtl.rewards import ExpectedSaturatingReward

@@ -288,3 +288,14 @@ def test_a_search_cost_the_task_cannot_give_is_refused_before_any_work():
         build(train_config("recipe=mc_pilco", "propagation.expected_reward=true"))
     with pytest.raises(UserError, match=r"propagation\.search_cost must be one of"):
         build(train_config("recipe=mc_pilco", "propagation.search_cost=tip"))
+
+
+def test_a_config_stored_with_the_old_envs_package_reads_with_qtl_envs():
+    """Before 1.1 the environments were the top-level ``envs``: a stored ``module:EnvId`` of theirs reads as today's."""
+    stored = OmegaConf.to_container(tiny_config("task=pendulum"), resolve=True)
+    assert stored["task"]["env"]["id"] == "qtl.envs.pendulum_hanging:PendulumHanging-v1"
+    stored["task"]["env"]["id"] = "envs.pendulum_hanging:PendulumHanging-v1"
+    cfg = typed_groups(OmegaConf.create(stored))
+    assert cfg.task.env.id == "qtl.envs.pendulum_hanging:PendulumHanging-v1"
+    assert build(cfg).task.env_id == cfg.task.env.id
+    assert typed_groups(tiny_config()).task.env.id == "qtl/CartPoleSwingUp-v0"  # a registered id is left alone

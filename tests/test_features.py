@@ -10,7 +10,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from envs.rewards import augment_angles
+from qtl.envs.rewards import augment_angles
 from qtl.features import AngleFeatures, trig_moments
 from qtl.gaussian import Gaussian
 from qtl.kernels.engine import FORMULATIONS, Engine

@@ -5,7 +5,7 @@ and the Gaussian state type (with the RNG seeding, which imports nothing from qt
 foundation every layer may use, the data and the task included (with ``qtl.health``, the counts of numerical
 trouble that the parts report and the loop records); and ``qtl.checkpoint`` (tensors
 and primitives on disk, importing only the errors) sits below transfer, which reads its source
-runs from checkpoints. A unit (a top-level module or subpackage of ``qtl``, or ``envs``) may import
+runs from checkpoints. A unit (a top-level module or subpackage of ``qtl``, ``qtl.envs`` included) may import
 units of lower layers, and of its own layer only where SAME_LAYER says so. A unit missing from the
 table counts as top level: nothing below may import it.
 """
@@ -22,10 +22,11 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ("qtl", "envs")
+# Where each package lives in the tree: ``qtl.envs`` is the top-level ``envs/`` directory, installed under qtl.
+PACKAGES = {"qtl": "qtl", "qtl.envs": "envs"}
 
 LAYERS: list[tuple[str, set[str]]] = [
-    ("envs", {"envs"}),
+    ("envs", {"qtl.envs"}),
     ("foundation", {"qtl.errors", "qtl.gaussian", "qtl.seeding", "qtl.health"}),
     ("data, task", {"qtl.data", "qtl.task", "qtl.env_wrappers"}),
     ("maths", {"qtl.kernels", "qtl.lbfgs", "qtl.plateau"}),
@@ -47,14 +48,15 @@ SAME_LAYER = {("qtl.policies", "qtl.features"), ("qtl.rewards", "qtl.features"),
 # Imported alone in a fresh interpreter, each of these may load only what the table allows it.
 ALONE = [
     "qtl.gaussian", "qtl.errors", "qtl.kernels", "qtl.lbfgs", "qtl.features", "qtl.data", "qtl.task", "qtl.models",
-    "qtl.env_wrappers", "qtl.policies", "qtl.rewards", "qtl.propagation", "qtl.policy_search", "qtl.transfer", "envs",
+    "qtl.env_wrappers", "qtl.policies", "qtl.rewards", "qtl.propagation", "qtl.policy_search", "qtl.transfer",
+    "qtl.envs",
 ]
 
 
 def unit(module: str) -> str:
-    """The layer unit of a module: ``envs``, ``qtl`` (the root package) or ``qtl.<first part>``."""
+    """The layer unit of a module: ``qtl`` (the root package) or ``qtl.<first part>`` (``qtl.envs`` too)."""
     parts = module.split(".")
-    return parts[0] if parts[0] == "envs" or len(parts) == 1 else ".".join(parts[:2])
+    return parts[0] if len(parts) == 1 else ".".join(parts[:2])
 
 
 def rank(name: str) -> int:
@@ -67,7 +69,7 @@ def may_import(importer: str, imported: str) -> bool:
     if importer == imported:
         return True
     if imported == "qtl":  # the root package: its __init__ holds only the version
-        return importer != "envs"
+        return True
     if rank(imported) < rank(importer):
         return True
     same = rank(imported) == rank(importer)
@@ -77,10 +79,10 @@ def may_import(importer: str, imported: str) -> bool:
 def source_files() -> dict[str, Path]:
     """Every module of the packages by dotted name (a package by its ``__init__.py``)."""
     modules = {}
-    for package in PACKAGES:
-        for path in sorted((ROOT / package).rglob("*.py")):
-            parts = path.relative_to(ROOT).with_suffix("").parts
-            modules[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = path
+    for package, directory in PACKAGES.items():
+        for path in sorted((ROOT / directory).rglob("*.py")):
+            parts = path.relative_to(ROOT / directory).with_suffix("").parts
+            modules[".".join([package, *(parts[:-1] if parts[-1] == "__init__" else parts)])] = path
     return modules
 
 
@@ -100,12 +102,12 @@ def imports_of(name: str, path: Path, known: set[str]) -> set[str]:
             for alias in node.names:
                 submodule = f"{module}.{alias.name}"
                 found.add(submodule if submodule in known else module)
-    return {m for m in found if m.split(".")[0] in PACKAGES}
+    return {m for m in found if m.split(".")[0] == "qtl"}
 
 
 @pytest.fixture(scope="module")
 def graph() -> dict[str, set[str]]:
-    """Module → the package modules it imports, over every file of ``qtl`` and ``envs``."""
+    """Module → the package modules it imports, over every file of ``qtl`` and ``qtl.envs``."""
     files = source_files()
     return {name: imports_of(name, path, set(files)) for name, path in files.items()}
 
@@ -113,7 +115,7 @@ def graph() -> dict[str, set[str]]:
 def test_the_table_names_each_unit_once_and_the_scan_finds_the_layers(graph):
     named = [u for _, units in LAYERS for u in units]
     assert len(named) == len(set(named))
-    assert {"envs", "qtl.gaussian", "qtl.kernels", "qtl.propagation", "qtl.transfer", "qtl.loop"} <= {
+    assert {"qtl.envs", "qtl.gaussian", "qtl.kernels", "qtl.propagation", "qtl.transfer", "qtl.loop"} <= {
         unit(m) for m in graph
     }
     # The scan sees real edges (a broken parser would make every check below pass vacuously).
@@ -124,7 +126,7 @@ def test_the_table_names_each_unit_once_and_the_scan_finds_the_layers(graph):
 def test_may_import_states_the_layering():
     assert may_import("qtl.propagation", "qtl.policies") and may_import("qtl.policies", "qtl.kernels")
     assert not may_import("qtl.policies", "qtl.propagation") and not may_import("qtl.kernels", "qtl.models")
-    assert not may_import("envs", "qtl") and not may_import("envs", "qtl.gaussian")
+    assert may_import("qtl.envs", "qtl") and not may_import("qtl.envs", "qtl.gaussian")
     assert not may_import("qtl.features", "qtl.policies") and not may_import("qtl.transfer", "qtl.recorder")
     assert not may_import("qtl.gaussian", "qtl.unlisted_newcomer")
 
@@ -150,7 +152,7 @@ def test_the_module_import_graph_is_acyclic(graph):
 def test_importing_a_layer_alone_loads_only_lower_layers(package):
     probe = (
         f"import {package}, sys, json; "
-        "print(json.dumps(sorted(m for m in sys.modules if m.split('.')[0] in ('qtl', 'envs'))))"
+        "print(json.dumps(sorted(m for m in sys.modules if m.split('.')[0] == 'qtl')))"
     )
     done = subprocess.run([sys.executable, "-c", probe], cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr

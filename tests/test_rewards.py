@@ -10,7 +10,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from envs.rewards import SaturatingReward
+from qtl.envs.rewards import SaturatingReward
 from qtl.gaussian import Gaussian
 from qtl.rewards import AngleDistanceReward, ExpectedSaturatingReward, RewardMixture
 

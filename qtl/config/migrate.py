@@ -27,14 +27,18 @@ LEGACY_OPTION_DEFAULTS: dict[str, dict[str, Any]] = {
     SparseModelConfig._target_: {"inducing_jitter": 0.0},
     AutoModelConfig._target_: {"inducing_jitter": 0.0},
 }
-
-
+# The environments' package was the top-level `envs` until 1.1: a stored ``module:EnvId`` id of one of them reads
+# as today's module (e.g. ``envs.pendulum_hanging:PendulumHanging-v1``).
+LEGACY_ENV_MODULE, ENV_MODULE = "envs.", "qtl.envs."
 
 def typed_groups(cfg: DictConfig) -> DictConfig:
     """``cfg`` with each group node merged onto the schema of its option (by ``_target_``): defaults filled, checked.
 
     A stored run config (a checkpoint's) then compares and merges like a freshly composed one.
     """
+    env = cfg.get("task", {}).get("env")
+    if env is not None and str(env.get("id", "")).startswith(LEGACY_ENV_MODULE):
+        env.id = ENV_MODULE + env.id[len(LEGACY_ENV_MODULE):]
     if cfg.get("rule") is None:  # runs made before transfer existed are PILCO runs
         cfg.rule = OmegaConf.structured(NoTransferConfig)
     for group, old in LEGACY_DEFAULTS.items():

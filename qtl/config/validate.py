@@ -18,8 +18,8 @@ import numpy as np
 from omegaconf import DictConfig
 from torch import nn
 
-from envs.rewards import SaturatingReward
 from qtl.config.groups import GROUP_SCHEMAS, SCHEMA_BY_TARGET
+from qtl.envs.rewards import SaturatingReward
 from qtl.errors import TaskError, TransferError, UserError
 from qtl.task import (
     DEFAULT_START_MIN_STD,

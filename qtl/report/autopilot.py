@@ -13,7 +13,7 @@ from pathlib import Path
 import gymnasium
 from omegaconf import DictConfig, OmegaConf
 
-from envs import Autopilot
+from qtl.envs import Autopilot
 from qtl.report.discover import CONFIG_FILE, Experiment, discover
 from qtl.report.record import ExperimentRecord, Reference
 
@@ -27,7 +27,7 @@ EnvKwargs = dict[str, float | int | str | bool | list[float]]
 
 
 def autopilot_return(env_kwargs: EnvKwargs | None = None, seed: int = 0) -> float:
-    """Total reward of one helicopter episode flown by the env's :class:`envs.Autopilot` (the reference of Fig. 3).
+    """Total reward of one helicopter episode flown by the env's :class:`qtl.envs.Autopilot` (the reference of Fig. 3).
 
     ``env_kwargs`` are ``qtl/Helicopter-v0`` constructor kwargs (an ``id`` key, as in ``task.env``, is ignored).
     """

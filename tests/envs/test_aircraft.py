@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
 
-import envs  # noqa: F401  (registers the ids)
-from envs.aircraft import (
+import qtl.envs  # noqa: F401  (registers the ids)
+from qtl.envs.aircraft import (
     GRAVITY,
     AircraftEnv,
     Autopilot,

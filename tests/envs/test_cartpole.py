@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
 
-import envs  # noqa: F401  (registers the ids)
-from envs.cartpole import CartPoleSwingUpEnv
-from envs.rewards import SaturatingReward
+import qtl.envs  # noqa: F401  (registers the ids)
+from qtl.envs.cartpole import CartPoleSwingUpEnv
+from qtl.envs.rewards import SaturatingReward
 
 ENV_ID = "qtl/CartPoleSwingUp-v0"
 # A non-trivial start: pole past horizontal, cart and pole moving.

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
 
-import envs  # noqa: F401  (registers the ids)
-from envs.mountain_car import (
+import qtl.envs  # noqa: F401  (registers the ids)
+from qtl.envs.mountain_car import (
     GOAL_POSITION,
     MAX_POSITION,
     MAX_SPEED,
@@ -20,7 +20,7 @@ from envs.mountain_car import (
     MountainCarEnv,
     map_step,
 )
-from envs.rewards import SaturatingReward
+from qtl.envs.rewards import SaturatingReward
 
 ENV_ID = "qtl/MountainCar-v0"
 START = np.array([-0.5, 0.0])

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from gymnasium.envs.classic_control.pendulum import PendulumEnv
 
-from envs.pendulum_hanging import ANGLE_SPREAD, SPEED_SPREAD, HangingStart
+from qtl.envs.pendulum_hanging import ANGLE_SPREAD, SPEED_SPREAD, HangingStart
 
-ENV_ID = "envs.pendulum_hanging:PendulumHanging-v1"
+ENV_ID = "qtl.envs.pendulum_hanging:PendulumHanging-v1"
 
 
 def test_the_reset_hangs_the_pendulum_and_is_seeded():

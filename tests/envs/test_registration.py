@@ -1,4 +1,4 @@
-"""Every id of `envs.ENV_IDS` is registered and honours the project's env contract.
+"""Every id of `qtl.envs.ENV_IDS` is registered and honours the project's env contract.
 
 The contract (what the learner relies on), for every env:
 - `gymnasium.make(id)` works without a TimeLimit wrapper; `check_env(env.unwrapped)` passes;
@@ -26,8 +26,8 @@ import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
 
-import envs
-from envs.rewards import SaturatingReward
+from qtl import envs
+from qtl.envs.rewards import SaturatingReward
 
 ALL_IDS = sorted(envs.ENV_IDS)
 N_DETERMINISM_STEPS = 5
@@ -41,14 +41,14 @@ DOC_SECTIONS = (
     "Arguments",
 )
 PUBLIC_NAMES = {
-    "CartPoleSwingUpEnv": "envs.cartpole",
-    "MountainCarEnv": "envs.mountain_car",
-    "QuadcopterEnv": "envs.aircraft",
-    "HelicopterEnv": "envs.aircraft",
-    "Autopilot": "envs.aircraft",
-    "ground_effect_factor": "envs.aircraft",
-    "SaturatingReward": "envs.rewards",
-    "augment_angles": "envs.rewards",
+    "CartPoleSwingUpEnv": "qtl.envs.cartpole",
+    "MountainCarEnv": "qtl.envs.mountain_car",
+    "QuadcopterEnv": "qtl.envs.aircraft",
+    "HelicopterEnv": "qtl.envs.aircraft",
+    "Autopilot": "qtl.envs.aircraft",
+    "ground_effect_factor": "qtl.envs.aircraft",
+    "SaturatingReward": "qtl.envs.rewards",
+    "augment_angles": "qtl.envs.rewards",
 }
 
 
@@ -68,10 +68,11 @@ def test_ids_are_registered_with_their_entry_points() -> None:
         assert gymnasium.spec(env_id).entry_point == entry_point
 
 
-def test_envs_package_does_not_import_qtl() -> None:
-    code = "import sys, envs, gymnasium\n"
+def test_envs_package_imports_nothing_else_of_qtl() -> None:
+    code = "import sys, qtl.envs, gymnasium\n"
     code += "".join(f"gymnasium.make({i!r})\n" for i in ALL_IDS)
-    code += "assert not any(m == 'qtl' or m.startswith('qtl.') for m in sys.modules)\n"
+    code += "assert not [m for m in sys.modules if m.startswith('qtl.') and not m.startswith('qtl.envs')]\n"
+    code += "assert 'torch' not in sys.modules\n"
     subprocess.run([sys.executable, "-c", code], check=True)
 
 
@@ -88,12 +89,14 @@ def test_package_reexports_the_public_names() -> None:
 
 
 def test_import_envs_is_lazy_about_the_env_modules() -> None:
-    """`import envs` registers the ids without importing an env module (nor qtl)."""
-    code = "import sys, envs\n"
-    code += "assert not {'envs.cartpole', 'envs.mountain_car', 'envs.aircraft'} & set(sys.modules), sys.modules\n"
-    code += "assert not any(m == 'qtl' or m.startswith('qtl.') for m in sys.modules)\n"
-    code += "from envs import CartPoleSwingUpEnv\n"
-    code += "assert 'envs.cartpole' in sys.modules and 'envs.aircraft' not in sys.modules\n"
+    """`import qtl.envs` registers the ids without importing an env module, nor any of qtl but its tiny root."""
+    code = "import sys, qtl.envs\n"
+    code += "assert not {'qtl.envs.cartpole', 'qtl.envs.mountain_car', 'qtl.envs.aircraft'} & set(sys.modules)\n"
+    code += "loaded = {m for m in sys.modules if m == 'qtl' or m.startswith('qtl.')}\n"
+    code += "assert loaded == {'qtl', 'qtl.envs', 'qtl.envs.rewards'}, loaded\n"
+    code += "assert 'torch' not in sys.modules\n"
+    code += "from qtl.envs import CartPoleSwingUpEnv\n"
+    code += "assert 'qtl.envs.cartpole' in sys.modules and 'qtl.envs.aircraft' not in sys.modules\n"
     subprocess.run([sys.executable, "-c", code], check=True)
 
 

@@ -1,4 +1,4 @@
-"""`envs.rewards`: the declarative `SaturatingReward` spec and the `augment_angles` convention.
+"""`qtl.envs.rewards`: the declarative `SaturatingReward` spec and the `augment_angles` convention.
 
 (Not named ``test_rewards.py``: ``tests/test_rewards.py`` exists, and pytest's default import mode
 refuses two test modules with one basename in folders without ``__init__.py``.)
@@ -12,7 +12,7 @@ import math
 import numpy as np
 import pytest
 
-from envs.rewards import SaturatingReward, augment_angles
+from qtl.envs.rewards import SaturatingReward, augment_angles
 
 # A 3-D state with one angle (dim 1): augmented y = [x0, x2, sin x1, cos x1].
 STATE_DIM = 3

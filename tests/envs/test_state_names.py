@@ -5,7 +5,7 @@ from __future__ import annotations
 import gymnasium
 import pytest
 
-import envs
+from qtl import envs
 
 
 @pytest.mark.parametrize("env_id", sorted(envs.ENV_IDS))

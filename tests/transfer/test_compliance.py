@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-import envs  # noqa: F401  (registers the ids)
+import qtl.envs  # noqa: F401  (registers the ids)
 from qtl.data import TransitionDataset, gp_training_pairs
 from qtl.features import AngleFeatures
 from qtl.models import DynamicsGP
