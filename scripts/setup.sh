@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Set up (or reuse) the project's virtual environment in .venv: torch==2.13.0 (CPU) first, then
-# qtl with its dev extras, then qtl's native kernel (gcc; optional). Idempotent: a second run
-# installs and compiles nothing when nothing changed.
+# qtl with its dev extras, then qtl's native kernels into the per-user cache (gcc; optional). Idempotent:
+# a second run installs and compiles nothing when nothing changed.
 #   --mujoco  also the `mujoco` extra (gymnasium's MuJoCo envs, task=inverted_pendulum); a later run
 #             without it keeps what is installed.
 set -euo pipefail
@@ -44,7 +44,9 @@ if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ] || [ "$missing_mujoco" = 1 ] \
   echo "$want" > "$stamp"
 fi
 
-# The native kernels (the C sources of qtl/kernels/native/, one library), compiled once per source, flags and CPU.
-# Optional: without it qtl uses the torch path, and a failed build says so in one line.
+# The native kernels (the C sources of qtl/kernels/native/, one library), compiled ahead of their first use into the
+# per-user cache ($QTL_CACHE_DIR, else $XDG_CACHE_HOME/qtl, else ~/.cache/qtl), once per source, compiler, flags and
+# CPU. Optional: qtl would compile them on first use anyway, and without a compiler it uses the torch path; a failed
+# build says so in one line.
 .venv/bin/python -m qtl.kernels.native.build --optional \
   || echo "qtl: native kernels not built; qtl will use the torch path" >&2

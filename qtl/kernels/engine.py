@@ -65,6 +65,14 @@ class Engine:
         """Whether the native twins of the fused formulation's pieces run (float64 CPU operands)."""
         return self.moments == "native"
 
+    def describe(self) -> str:
+        """What a run's log says of its kernels: ``native (<library path>)`` when compiled code runs, else ``torch``."""
+        if "native" not in (self.exp_sums, self.moments):
+            return "torch"
+        from qtl.kernels.native.first_use import library_path  # the compiled kernels sit below the engine's choice
+
+        return f"native ({library_path()})"
+
     def replace(self, **changes: str | bool) -> Engine:
         """This engine with ``changes`` (field names as keywords)."""
         return dataclasses.replace(self, **changes)
@@ -73,28 +81,35 @@ class Engine:
     def resolve(cls, exp_sums: str = "auto", moments: str = "auto") -> Engine:
         """The engine of ``kernels.backend`` and ``kernels.moments``, each ``auto`` resolved; checked before any work.
 
-        ``native`` needs the compiled library: a UserError saying how to build it when it cannot load;
-        ``auto`` then takes ``torch`` (exp sums) and ``fused`` (moments), with one log line each (once per
-        process) that says why.
+        ``native`` needs the compiled library (compiled on first use): a UserError saying why when it cannot be had;
+        ``auto`` then takes ``torch`` (exp sums) and ``fused`` (moments), with one log line (once per process) that
+        says why and what it uses instead.
         """
         if exp_sums not in EXP_SUM_CHOICES:
             raise UserError(f"kernels.backend must be one of {', '.join(EXP_SUM_CHOICES)}, got {exp_sums!r}")
-        if exp_sums != "torch":
-            exp_sums = _native_or(
-                exp_sums == "native", "torch",
-                "kernels.backend=native, but the native exp-sum kernel cannot load ({err}): "
-                "build it with `{build}`, or choose kernels.backend=auto or torch",
-                "native exp-sum kernel unavailable (%s); using the torch path (build it: `%s`)",
-            )
         if moments not in MOMENT_CHOICES:
             raise UserError(f"kernels.moments must be one of {', '.join(MOMENT_CHOICES)}, got {moments!r}")
-        if moments in ("native", "auto"):
-            moments = _native_or(
-                moments == "native", "fused",
-                "kernels.moments=native, but the native kernels cannot load ({err}): "
-                "build them with `{build}`, or choose kernels.moments=fused",
-                "native moment kernels unavailable (%s); using kernels.moments=fused (build: `%s`)",
-            )
+        wants_native = exp_sums != "torch" or moments in ("native", "auto")
+        err = native_build_error() if wants_native else None
+        if err is not None and exp_sums == "native":
+            raise UserError(
+                f"kernels.backend=native, but the native exp-sum kernel cannot load ({err}): "
+                f"build it with `{BUILD_COMMAND}`, or choose kernels.backend=auto or torch"
+            ) from err
+        if err is not None and moments == "native":
+            raise UserError(
+                f"kernels.moments=native, but the native kernels cannot load ({err}): "
+                f"build them with `{BUILD_COMMAND}`, or choose kernels.moments=fused"
+            ) from err
+        fallbacks = []
+        if moments == "auto":
+            moments = "fused" if err is not None else "native"
+            fallbacks.append("kernels.moments=fused")
+        if exp_sums == "auto":
+            exp_sums = "torch" if err is not None else "native"
+            fallbacks.append("kernels.backend=torch")
+        if err is not None and fallbacks:
+            _log_once(" and ".join(fallbacks), str(err))
         return cls(exp_sums=exp_sums, moments=moments)
 
 
@@ -114,17 +129,7 @@ def native_build_error() -> ImportError | None:
 
 
 @functools.cache
-def _log_once(message: str, reason: str) -> None:
-    """Log ``message`` (with ``reason`` and the build command) once per process for each message and reason."""
-    logger.info(message, reason, BUILD_COMMAND)
-
-
-def _native_or(required: bool, fallback: str, refusal: str, fallback_note: str) -> str:
-    """``native`` when the compiled kernels load; else a UserError (``required``) or ``fallback`` with one log line."""
-    err = native_build_error()
-    if err is None:
-        return "native"
-    if required:
-        raise UserError(refusal.format(err=err, build=BUILD_COMMAND)) from err
-    _log_once(fallback_note, str(err))
-    return fallback
+def _log_once(fallbacks: str, reason: str) -> None:
+    """Say once per process (for each choice and reason) that the native kernels are not used, why and instead what."""
+    logger.info("native kernels unavailable (%s); using %s (`%s` retries the build and says why it fails)",
+                reason, fallbacks, BUILD_COMMAND)

@@ -261,7 +261,7 @@ def test_moments_agree_across_backends(built, gp_factory, cov_factory):
 
 
 def test_auto_falls_back_to_torch_and_says_so_once(monkeypatch, caplog, tmp_path):
-    monkeypatch.setattr(loader, "artefact_path", lambda: tmp_path / "missing.so")
+    monkeypatch.setattr(loader, "library_path", lambda: tmp_path / "missing.so")
     engine_module._log_once.cache_clear()
     with caplog.at_level(logging.INFO, logger=engine_module.__name__):
         assert Engine.resolve("auto", "reference").exp_sums == "torch"
@@ -273,12 +273,12 @@ def test_auto_falls_back_to_torch_and_says_so_once(monkeypatch, caplog, tmp_path
 def test_auto_falls_back_when_the_library_does_not_load(monkeypatch, tmp_path):
     broken = tmp_path / "broken.so"
     broken.write_bytes(b"not a shared library")
-    monkeypatch.setattr(loader, "artefact_path", lambda: broken)
+    monkeypatch.setattr(loader, "library_path", lambda: broken)
     assert Engine.resolve("auto", "reference").exp_sums == "torch"
 
 
 def test_native_requested_but_missing_is_a_user_error(monkeypatch, tmp_path):
-    monkeypatch.setattr(loader, "artefact_path", lambda: tmp_path / "missing.so")
+    monkeypatch.setattr(loader, "library_path", lambda: tmp_path / "missing.so")
     with pytest.raises(UserError, match=r"kernels.backend=native.*qtl.kernels.native.build"):
         Engine.resolve("native", "reference")
     with pytest.raises(UserError, match="one of auto, native, torch"):

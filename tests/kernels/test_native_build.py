@@ -1,4 +1,4 @@
-"""The native kernel's build: cached by source, flags and CPU; a failed build leaves the torch path."""
+"""The native kernel's build: cached by source, compiler, flags and CPU; a failed build leaves the torch path."""
 
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ def test_a_second_build_is_a_cache_hit(built):
     stamp = built.stat().st_mtime_ns
     assert native_build.build() == built
     assert built.stat().st_mtime_ns == stamp
-    assert built.parent == artefact.DIRECTORY and built.name.startswith(artefact.ARTEFACT_PREFIX)
+    assert built.parent == artefact.cache_directory() and built.name.startswith(artefact.ARTEFACT_PREFIX)
 
 
 def test_the_cache_key_follows_source_flags_and_cpu(monkeypatch, tmp_path):
@@ -34,13 +34,29 @@ def test_the_cache_key_follows_source_flags_and_cpu(monkeypatch, tmp_path):
     monkeypatch.setattr(artefact, "FLAGS", artefact.FLAGS[:-1])
     monkeypatch.setattr(artefact, "cpu_tag", lambda: "another-cpu")
     assert artefact.cache_key() != key
+    monkeypatch.undo()
+    monkeypatch.setenv("CC", "clang -fsomething")
+    assert artefact.compiler() == ("clang", "-fsomething") and artefact.cache_key() != key
+
+
+def test_the_cache_root_follows_qtl_cache_dir_then_xdg_then_home(monkeypatch, tmp_path):
+    monkeypatch.delenv("QTL_CACHE_DIR", raising=False)
+    monkeypatch.delenv("XDG_CACHE_HOME", raising=False)
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    assert artefact.cache_directory() == tmp_path / "home" / ".cache" / "qtl" / "native"
+    monkeypatch.setenv("XDG_CACHE_HOME", "relative/ignored")  # the XDG spec: a relative path is ignored
+    assert artefact.cache_root() == tmp_path / "home" / ".cache" / "qtl"
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    assert artefact.cache_root() == tmp_path / "xdg" / "qtl"
+    monkeypatch.setenv("QTL_CACHE_DIR", str(tmp_path / "mine"))
+    assert artefact.artefact_path().parent == tmp_path / "mine" / "native"
 
 
 def test_a_failed_build_keeps_the_kernel_and_says_torch_once(built, monkeypatch, capsys):
-    monkeypatch.setattr(native_build, "COMPILER", "/nonexistent/cc")
+    monkeypatch.setattr(native_build, "compiler", lambda: ("/nonexistent/cc",))  # the same key: a forced rebuild
     assert native_build.main(["--force", "--optional"]) == 0
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "torch path" in err[0] and "/nonexistent/cc" in err[0]
+    assert len(err) == 1 and "torch path" in err[0] and "/nonexistent/cc" in err[0] and "install gcc" in err[0]
     assert native_build.main(["--force"]) == 1
     assert built.is_file()  # the cached kernel is untouched by a failed rebuild
 

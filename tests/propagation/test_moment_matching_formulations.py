@@ -97,7 +97,7 @@ def test_native_and_auto_need_the_build_and_auto_falls_back_to_fused(monkeypatch
     """moments=native refuses a missing build in one line; auto takes native when built, else fused (logged once)."""
     native_build.build()
     assert Engine.resolve("torch", "auto").moments == "native"
-    monkeypatch.setattr(loader, "artefact_path", lambda: tmp_path / "missing.so")
+    monkeypatch.setattr(loader, "library_path", lambda: tmp_path / "missing.so")
     with pytest.raises(UserError, match=r"kernels\.moments=native, but .* build them with"):
         Engine.resolve("torch", "native")
     engine_module._log_once.cache_clear()

@@ -10,7 +10,7 @@ from typing import TypeVar
 
 import torch  # noqa: F401  (first: the library then shares the libgomp torch has loaded)
 
-from qtl.kernels.native.artefact import artefact_path
+from qtl.kernels.native.first_use import library_path
 
 Binding = TypeVar("Binding")
 
@@ -35,12 +35,10 @@ def _bound(binding: Callable[[ctypes.CDLL], Binding], path: Path) -> Binding:
 def load_binding(binding: Callable[[ctypes.CDLL], Binding]) -> Binding:
     """``binding`` (a ctypes wrapper of some of its symbols) over the library built for these sources, flags and CPU.
 
-    Opened once per path, bound once per (binding, path); an ImportError saying why when the library is missing
-    or lacks the symbols.
+    Compiled on first use (:func:`library_path`), opened once per path, bound once per (binding, path); an
+    ImportError saying why when the library cannot be built, does not load or lacks the symbols.
     """
-    path = artefact_path()
-    if not path.is_file():
-        raise ImportError(f"{path.name} is not built for these sources and CPU")
+    path = library_path()
     try:
         return _bound(binding, path)
     except (OSError, AttributeError) as err:
@@ -49,5 +47,5 @@ def load_binding(binding: Callable[[ctypes.CDLL], Binding]) -> Binding:
 
 @functools.cache
 def binding_once(binding: Callable[[ctypes.CDLL], Binding]) -> Binding:
-    """:func:`load_binding`, once per process for hot paths (finding the artefact hashes the sources)."""
+    """:func:`load_binding`, once per process for hot paths (finding the library hashes the sources)."""
     return load_binding(binding)
