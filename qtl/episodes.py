@@ -114,7 +114,7 @@ def prediction_figure(
         with torch.no_grad():
             predicted = propagator.rollout(start, horizon).states  # (H+1) x D
     except (NonFiniteObjective, torch.linalg.LinAlgError) as err:
-        log.warning("no prediction figure for %s: the predicted rollout broke down (%s)", title, err)
+        log.info("no prediction figure for %s: the predicted rollout broke down (%s)", title, err)
         return None
     mean = predicted.mean.cpu().numpy()
     std = torch.diagonal(predicted.cov, dim1=-2, dim2=-1).clamp_min(0).sqrt().cpu().numpy()

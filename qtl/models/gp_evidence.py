@@ -85,7 +85,7 @@ class GPEvidence:
                 value = self._optimise(max_iter)
             except (NotPSDError, ValueError, RuntimeError) as err:
                 health.count(health.GP_FIT_FAILED)
-                log.warning("GP fit restart %d failed and is discarded: %s", attempt, err)
+                log.info("GP fit restart %d failed and is discarded: %s", attempt, err)
                 continue
             found = self.hyperparameters.log()
             better = torch.isfinite(value) & (value > best_value)
@@ -119,7 +119,7 @@ class GPEvidence:
             value = self._optimise(max_iter)
         except (NotPSDError, ValueError, RuntimeError) as err:
             health.count(health.GP_FIT_FAILED)
-            log.warning("warm-started GP fit failed, every output is refitted cold: %s", err)
+            log.info("warm-started GP fit failed, every output is refitted cold: %s", err)
             value = torch.full((self.num_outputs,), -math.inf, dtype=cold.lengthscales.dtype,
                                device=cold.lengthscales.device)
         best = self.hyperparameters.log() if torch.isfinite(value).any() else cold.log()
@@ -138,7 +138,7 @@ class GPEvidence:
                 part_value = part.fit(restarts=restarts, max_iter=max_iter, generator=generator)
             except RuntimeError as err:
                 health.count(health.GP_FIT_FAILED)
-                log.warning("cold restarts failed: %s", err)
+                log.info("cold restarts failed: %s", err)
                 part_value = torch.full_like(value[chosen], -math.inf)
             better = torch.isfinite(part_value) & (part_value > value[chosen])
             log.info("cold restarts: the cold fit kept for output(s) %s, the warm fit for %s",
@@ -200,9 +200,9 @@ class GPEvidence:
                     for param, value in zip(params, best[1], strict=True):
                         param.copy_(value)
                 if resume == FIT_RESUMES or left <= 0:
-                    log.warning("GP fit: a line-search step failed (%s); it ends at the best θ evaluated", err)
+                    log.info("GP fit: a line-search step failed (%s); it ends at the best θ evaluated", err)
                     break
-                log.warning("GP fit: a line-search step failed (%s); L-BFGS resumes from the best θ evaluated "
+                log.info("GP fit: a line-search step failed (%s); L-BFGS resumes from the best θ evaluated "
                             "(%d iterations left)", err, left)
         with torch.no_grad():
             value = self.log_evidence()

@@ -198,7 +198,7 @@ class SparseDynamicsGP(DynamicsGP):
                 value = self._optimise(max_iter)
             except (NotPSDError, ValueError, RuntimeError) as err:
                 health.count(health.GP_FIT_FAILED)
-                log.warning("sparse GP fit restart %d failed and is discarded: %s", attempt, err)
+                log.info("sparse GP fit restart %d failed and is discarded: %s", attempt, err)
                 continue
             total = float(value.sum())
             if math.isfinite(total) and (best is None or total > best[0]):
@@ -238,7 +238,7 @@ class SparseDynamicsGP(DynamicsGP):
             value = self._optimise(max_iter)
         except (NotPSDError, ValueError, RuntimeError) as err:
             health.count(health.GP_FIT_FAILED)
-            log.warning("warm-started sparse GP fit failed, refitted cold: %s", err)
+            log.info("warm-started sparse GP fit failed, refitted cold: %s", err)
             value = torch.full((self.num_outputs,), -math.inf, dtype=cold_z.dtype, device=cold_z.device)
         total, limit = float(value.sum()), float(reference.sum()) - self.num_outputs * tolerance
         if math.isfinite(total) and total >= limit:

@@ -113,7 +113,7 @@ class RestartBatch:
             (-values.sum()).backward()
         except INVALID_PSI_ERRORS as err:
             count_failure(err)
-            log.warning("batched policy search: the rollout failed (%s); evaluating each restart alone", err)
+            log.info("batched policy search: the rollout failed (%s); evaluating each restart alone", err)
             alone = self._alone(objective)
             return [self._answer(position, value, grad) for position, (value, grad) in enumerate(alone)]
         params = self.trainable()
@@ -151,7 +151,7 @@ class RestartBatch:
             values = objective()
         except INVALID_PSI_ERRORS as err:
             count_failure(err)
-            log.warning("batched policy search: the rollout failed (%s); re-evaluating each restart", err)
+            log.info("batched policy search: the rollout failed (%s); re-evaluating each restart", err)
             return Values(None, self._failing_alone(objective))
         self._check_shape(values)
         finite = torch.isfinite(values.detach())
@@ -198,7 +198,7 @@ class RestartBatch:
                     health.count(health.NONFINITE)
                 failing.append(position)
         if not failing:
-            log.warning("batched policy search: no restart fails alone; every restart stops at its best ψ")
+            log.info("batched policy search: no restart fails alone; every restart stops at its best ψ")
             return list(range(len(self.active)))
         return failing
 
@@ -216,7 +216,7 @@ class RestartBatch:
         """Remove the restarts at ``positions``; the others go on from their current ψ; the kept positions."""
         for position in positions:
             health.count(health.SEARCH_STOPPED)
-            log.warning("policy search restart %d stopped at a numerically invalid ψ; it keeps the best ψ it "
+            log.info("policy search restart %d stopped at a numerically invalid ψ; it keeps the best ψ it "
                         "evaluated", self.active[position])
         kept = [position for position in range(len(self.active)) if position not in set(positions)]
         states = [self._psi_at(position) for position in kept]

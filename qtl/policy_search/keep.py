@@ -73,6 +73,6 @@ def kept_afresh(
     except INVALID_PSI_ERRORS as err:
         count_failure(err)
         health.count(health.SEARCH_STOPPED)
-        log.warning("policy search run %d: its final ψ failed to evaluate (%s); it keeps the best ψ it evaluated",
+        log.info("policy search run %d: its final ψ failed to evaluate (%s); it keeps the best ψ it evaluated",
                     run, err)
         return None

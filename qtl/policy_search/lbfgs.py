@@ -55,7 +55,7 @@ class LBFGSSearch(RestartingSearch):
                 break
         if invalid(answer):  # it ended on an invalid point: no valid step was left to take
             health.count(health.SEARCH_STOPPED)
-            log.warning("policy search run stopped: no valid ψ along its last search direction; it keeps the best "
+            log.info("policy search run stopped: no valid ψ along its last search direction; it keeps the best "
                         "ψ it evaluated")
 
     def _run_batched(self, batch: RestartBatch, objective: Callable[[], Tensor], tick: Callable[[], None]) -> None:
@@ -73,7 +73,7 @@ class LBFGSSearch(RestartingSearch):
                     del asked[restart]
                     if invalid(answer):
                         health.count(health.SEARCH_STOPPED)
-                        log.warning("policy search restart %d stopped: no valid ψ along its last search "
+                        log.info("policy search restart %d stopped: no valid ψ along its last search "
                                     "direction; it keeps the best ψ it evaluated", restart)
 
 

@@ -146,7 +146,7 @@ class RestartingSearch:
                 count_failure(err)
                 health.count(health.SEARCH_STOPPED)
                 candidates = snapshots  # taken before the invalid ψ; without any, the best ψ evaluated
-                log.warning("policy search run %d stopped at a numerically invalid ψ (%s); it keeps the best ψ %s",
+                log.info("policy search run %d stopped at a numerically invalid ψ (%s); it keeps the best ψ %s",
                             run, err, "of its snapshots" if candidates else "it evaluated")
             kept = kept_afresh(self.keep, policy, objective, candidates, run)  # valued afresh (no dropout now)
             if kept is not None:
