@@ -123,16 +123,17 @@ def resolve_device(name: str) -> torch.device:
     try:
         device = torch.device(name)
     except RuntimeError as err:
-        raise ValueError(f"device={name!r} is not a torch device: choose cpu, cuda or cuda:N ({err})") from None
+        raise UserError(f"device={name!r} is not a torch device: choose cpu, cuda or cuda:N ({err})") from None
     if device.type == "cpu":
         return device
     if device.type != "cuda":
-        raise ValueError(f"device={name!r}: qtl runs on cpu or cuda (cuda:N), not {device.type}")
+        raise UserError(f"device={name!r}: qtl runs on cpu or cuda (cuda:N), not {device.type}")
     if not torch.cuda.is_available():
-        raise ValueError(f"device={name!r}, but torch {torch.__version__} sees no CUDA GPU on this machine "
+        raise UserError(f"device={name!r}, but torch {torch.__version__} sees no CUDA GPU on this machine "
                          "(torch.cuda.is_available() is False): use device=cpu, or a CUDA build of torch")
     if device.index is not None and device.index >= torch.cuda.device_count():
-        raise ValueError(f"device={name!r}, but this machine has {torch.cuda.device_count()} CUDA device(s)")
+        raise UserError(f"device={name!r}, but this machine has {torch.cuda.device_count()} CUDA device(s): "
+                        f"use device=cpu or cuda:0 to cuda:{max(torch.cuda.device_count() - 1, 0)}")
     return device
 
 

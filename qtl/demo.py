@@ -20,21 +20,21 @@ from pathlib import Path
 
 from qtl.launch import ensure_run
 from qtl.metrics import Curve
+from qtl.report.tables import markdown_table
 
 
 def summary_table(runs: dict[str, Path]) -> str:
     """Markdown table of each run's learning-curve summary, side by side."""
-    lines = ["| run | episodes | first success | area under curve | final performance | compliance (last) |",
-             "| --- | ---: | ---: | ---: | ---: | ---: |"]
+    rows = []
     for name, run_dir in runs.items():
         curve = Curve.read(run_dir)
         s = curve.summary()
         first = "—" if s["first_success"] is None else str(s["first_success"])
         compliance = curve.compliance[-1]
         shown = "—" if math.isnan(compliance) else f"{compliance:.2f}"
-        lines.append(f"| {name} | {len(curve.returns)} | {first} | {s['auc']:.1f} | {s['final_performance']:.1f} "
-                     f"| {shown} |")
-    return "\n".join(lines)
+        rows.append([name, len(curve.returns), first, f"{s['auc']:.1f}", f"{s['final_performance']:.1f}", shown])
+    return markdown_table(rows, ["run", "episodes", "first success", "area under curve", "final performance",
+                                 "compliance (last)"])
 
 
 def main() -> None:

@@ -59,7 +59,7 @@ THETA_CATEGORY = "θ_i vs θ_p_i: {output}"
 def outcomes(rows: Sequence[Mapping[str, Any]], timings: Sequence[Mapping[str, Any]] = ()) -> dict[str, float]:
     """The outcome metrics of :data:`OUTCOMES` from a run's episode rows and timings (as recorded or read back).
 
-    The summaries are :mod:`qtl.metrics`'s, those of ``scripts/report.py``'s tables, over every episode
+    The summaries are :mod:`qtl.metrics`'s, those of ``qtl-report``'s tables, over every episode
     of the run (the initial ones included); an undefined one is NaN.
     """
     returns = [float(r["return"]) for r in rows]

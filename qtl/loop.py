@@ -8,7 +8,7 @@ import logging
 import math
 import time
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -24,8 +24,10 @@ from qtl.build import Parts, build, transfer_plan
 from qtl.checkpoint import prune_checkpoints, refuse_existing_run, run_checkpoint
 from qtl.data import TransitionDataset
 from qtl.episodes import Episode, one_step_smse, prediction_figure, random_actor, run_episode
+from qtl.frames import episode_video
 from qtl.gaussian import Gaussian
 from qtl.hparams import outcomes, start_dashboards, write_outcomes
+from qtl.kernels import Engine
 from qtl.models import PreviousFit, log_evidence
 from qtl.models.dynamics_gp import MIN_TRAIN_POINTS
 from qtl.policy_search import SearchResult
@@ -34,6 +36,7 @@ from qtl.recorder import BASE_COLUMNS, THETA_P_PREFIX, RunRecorder, start_column
 from qtl.run_state import RunState
 from qtl.seeding import ACTION_STREAM, ENV_STREAM, MODEL_STREAM, SEARCH_STREAM, seed_everything
 from qtl.task import Task, diagonal_gaussian
+from qtl.video import Clip
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
@@ -48,24 +51,28 @@ class RunResult:
     returns: list[float]
     predicted_returns: list[float]  # NaN for the initial episodes
     successes: list[bool]
+    health: dict[str, int] = field(default_factory=dict)  # each ``health.csv`` event, summed over the episodes
 
     @classmethod
-    def of(cls, output_dir: Path, rows: Sequence[dict[str, Any]]) -> RunResult:
-        """The result of a run's recorded rows."""
+    def of(cls, output_dir: Path, rows: Sequence[dict[str, Any]],
+           health_rows: Sequence[dict[str, Any]] = ()) -> RunResult:
+        """The result of a run's recorded rows (``metrics.csv``'s and ``health.csv``'s)."""
+        totals = {event: sum(int(row.get(event, 0)) for row in health_rows) for event in health.EVENTS}
         return cls(output_dir=output_dir, returns=[float(r["return"]) for r in rows],
                    predicted_returns=[float(r["predicted_return"]) for r in rows],
-                   successes=[bool(int(r["success"])) for r in rows])
+                   successes=[bool(int(r["success"])) for r in rows], health=totals)
 
 
 @dataclass(frozen=True)
 class EpisodeResult:
-    """One episode on the real system and what is recorded of it: its ``metrics.csv`` row, times, figure."""
+    """One episode on the real system and what is recorded of it: its ``metrics.csv`` row, times, figure, video."""
 
     real: Episode
     row: dict[str, Any]
     fit_s: float = 0.0
     search_s: float = 0.0
     figure: Figure | None = None
+    video: Clip | None = None
 
 
 def run(cfg: DictConfig, output_dir: Path, *, resume: bool = False) -> RunResult:
@@ -82,7 +89,7 @@ def run(cfg: DictConfig, output_dir: Path, *, resume: bool = False) -> RunResult
     # -- Lines 1-2: π ← π(ψ_s) when ψ_s is transferred (else PILCO's ψ_0); θ ← θ_s waits for the first model.
     # (Resuming: the data, θ, ψ, the rule's state and the RNG streams of the last checkpoint instead.)
     state = RunState.fresh(parts, plan) if checkpoint is None else RunState.load(checkpoint, parts, plan)
-    recorder = _open_recorder(cfg, output_dir, parts.task, state, total)
+    recorder = _open_recorder(cfg, output_dir, parts.task, state, total, parts.engine)
     env = parts.task.make_env()
     try:
         health.take()  # counts from here on only
@@ -107,7 +114,7 @@ def run(cfg: DictConfig, output_dir: Path, *, resume: bool = False) -> RunResult
     finally:
         env.close()
         recorder.close()
-    return RunResult.of(output_dir, state.records.rows)
+    return RunResult.of(output_dir, state.records.rows, state.records.health)
 
 
 def initial_episode(cfg: DictConfig, parts: Parts, state: RunState, env: gymnasium.Env) -> EpisodeResult:
@@ -116,7 +123,7 @@ def initial_episode(cfg: DictConfig, parts: Parts, state: RunState, env: gymnasi
     Also after ``cfg.random_episodes`` while early-ended episodes have left fewer tuples than a GP needs.
     """
     if state.episodes >= cfg.random_episodes:
-        log.warning("only %d transitions after %d episodes (they ended early): one more initial "
+        log.info("only %d transitions after %d episodes (they ended early): one more initial "
                     "episode before the first model", len(state.data), state.episodes)
     if state.plan.transfer_policy:
         actor, kind = parts.actor(state.policy), "source_policy"
@@ -159,23 +166,25 @@ def learned_episode(cfg: DictConfig, parts: Parts, state: RunState, env: gymnasi
     predicted = predicted_return(propagator, found, parts.search_reward, start, task.horizon)
 
     # -- Lines 10-11: apply π(ψ) on the real system to obtain more tuples. -----------------------------
-    real = run_episode(env, task, parts.actor(state.policy), state.stream(ENV_STREAM))
+    seed = state.stream(ENV_STREAM)
+    real = run_episode(env, task, parts.actor(state.policy), seed)
     row.update(kind="policy", predicted_return=predicted, model_smse=one_step_smse(model, real, parts.features,
                parts.dtype), model_log_evidence=log_evidence(model), policy_evaluations=found.evaluations,
                compliance=compliance, fallback=int(plan.fallen_back), **theta_row(state.theta),
                **theta_row(theta_p, THETA_P_PREFIX))
-    figure = None
+    figure = video = None
     if cfg.figure_every > 0 and (state.episodes - cfg.random_episodes) % cfg.figure_every == 0:
         figure = prediction_figure(propagator, start, task.horizon, real, f"episode {state.episodes}: predicted vs "
                                    "real", task.state_names)
-    return EpisodeResult(real, {**row, **_real_columns(task, real)}, fit_s, search_s, figure)
+        video = episode_video(task, real, seed) if cfg.get("video", True) else None  # the same episode, rendered
+    return EpisodeResult(real, {**row, **_real_columns(task, real)}, fit_s, search_s, figure, video)
 
 
 def record_episode(recorder: RunRecorder, state: RunState, done: EpisodeResult, episode_s: float) -> None:
     """Record the episode ``state`` is at: its row, times and health counts, and the run's outcomes so far."""
     episode = state.episodes
     recorder.record(done.row, {"model_fit_s": done.fit_s, "policy_search_s": done.search_s, "episode_s": episode_s},
-                    done.figure, {"resumed": int(episode == state.resumed_at), **health.take()})
+                    done.figure, {"resumed": int(episode == state.resumed_at), **health.take()}, done.video)
     write_outcomes(recorder.writer, outcomes(state.records.rows, state.records.timings), episode)
 
 
@@ -186,8 +195,9 @@ def _real_columns(task: Task, real: Episode) -> dict[str, Any]:
             "final_distance": float(task.distance(real.states[-1:])[0])}
 
 
-def _open_recorder(cfg: DictConfig, output_dir: Path, task: Task, state: RunState, total: int) -> RunRecorder:
-    """The run's recorder over ``state``'s records (a fresh run's dashboards written); the plan or resume logged."""
+def _open_recorder(cfg: DictConfig, output_dir: Path, task: Task, state: RunState, total: int,
+                   engine: Engine) -> RunRecorder:
+    """The run's recorder over ``state``'s records (a fresh run's dashboards written); plan, kernels, resume logged."""
     if state.resumed_at is not None and state.episodes >= total:  # e.g. a sweep resuming all its runs: one line
         log.info("%s finished already (it holds %d episodes, the budget is %d): nothing to run",
                  output_dir, state.episodes, total)
@@ -198,6 +208,7 @@ def _open_recorder(cfg: DictConfig, output_dir: Path, task: Task, state: RunStat
                + (start_columns(task.state_dim) if task.start_estimated else []))
     if state.episodes < total:
         log.info("%s", state.plan.describe())
+        log.info("kernels: %s; exp sums %s, moments %s", engine.describe(), engine.exp_sums, engine.moments)
     recorder = RunRecorder(output_dir, columns, state.records)
     if not state.records.rows:  # HParams session, chart layout, config and plan: once per run, not again on resume
         start_dashboards(recorder.writer, cfg, task, state.plan)

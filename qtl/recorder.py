@@ -1,4 +1,4 @@
-"""What a run writes as it learns: TensorBoard scalars and figures, and ``metrics.csv``."""
+"""What a run writes as it learns: TensorBoard scalars, figures and videos, and ``metrics.csv``."""
 
 from __future__ import annotations
 
@@ -14,10 +14,13 @@ from torch.utils.tensorboard import SummaryWriter
 
 from qtl.health import EVENTS
 from qtl.models import GPHyperparameters
+from qtl.video import Clip, video_summary
 
 if TYPE_CHECKING:  # matplotlib loads only where a figure is drawn (~0.7 s off every CLI start)
     from matplotlib.figure import Figure
 
+FIGURE_TAG = "rollout/predicted_vs_real"  # the predicted-vs-real figure of an episode (``figure_every``)
+VIDEO_TAG = "rollout/video"  # the same episode on the real system, rendered (``video``)
 METRICS_FILE = "metrics.csv"  # the one spelling: qtl.metrics, qtl.report and the scripts import it
 THETA_PREFIX = "theta"  # θ_i, what the episode's model used
 THETA_P_PREFIX = "theta_p"  # θ_p_i, what evidence maximisation found
@@ -121,8 +124,12 @@ class RunRecorder:
         timings: dict[str, float],
         figure: Figure | None = None,
         health: dict[str, int] | None = None,
+        video: Clip | None = None,
     ) -> None:
-        """Append an episode's row, timings and health counts; write scalars (and figure) to TensorBoard; flush."""
+        """Append an episode's row, timings and health counts; write scalars (figure, video) to TensorBoard; flush.
+
+        The video is the summary TensorBoard's ``add_video`` writes (an animated GIF), encoded without moviepy.
+        """
         step = int(row["episode"])
         timings = {"episode": step, **timings}
         health = {"episode": step, "resumed": 0, **{event: 0 for event in EVENTS}, **(health or {})}
@@ -155,7 +162,9 @@ class RunRecorder:
             if value is not None and value != "" and math.isfinite(float(value)):
                 self.writer.add_scalar(tag, float(value), step)
         if figure is not None:
-            self.writer.add_figure("rollout/predicted_vs_real", figure, step, close=True)
+            self.writer.add_figure(FIGURE_TAG, figure, step, close=True)
+        if video is not None:  # what add_video does, through the same event file writer
+            self.writer._get_file_writer().add_summary(video_summary(VIDEO_TAG, video), step)
         self.writer.flush()
 
     def close(self) -> None:

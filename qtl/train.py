@@ -11,6 +11,7 @@ import copy
 import logging
 import os
 import sys
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -22,7 +23,7 @@ from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
-from qtl.build import DTYPES
+from qtl.build import DTYPES, resolve_device
 from qtl.checkpoint import refuse_existing_run, run_lock
 from qtl.config import check_budget, check_group_keys, register_configs, show_progress
 from qtl.errors import CheckpointError, UserError
@@ -35,7 +36,7 @@ log = logging.getLogger(__name__)
 
 # What a resumed run may change of the interrupted run's configuration.
 # Top-level keys: ``kernels`` covers ``kernels.backend`` (the engine, not the maths: round-off only).
-RESUME_OVERRIDABLE = frozenset({"episodes", "progress", "figure_every", "threads", "device", "kernels",
+RESUME_OVERRIDABLE = frozenset({"episodes", "progress", "figure_every", "threads", "device", "kernels", "video",
                                 "keep_checkpoints", "resume"})
 HYDRA_DIR = ".hydra"  # the run's record of its configuration, as Hydra lays it out
 FULL_ERROR = "HYDRA_FULL_ERROR"  # Hydra's switch for full tracebacks; qtl-train honours it too
@@ -120,12 +121,14 @@ def prepare(cfg: DictConfig) -> tuple[DictConfig, Path]:
     output_dir = Path(hydra_cfg.runtime.output_dir)
     check_budget(cfg)
     check_group_keys(cfg)
+    resolve_device(cfg.device)  # a missing GPU is one line here, before a run directory is written
     if cfg.resume == "auto":
         cfg = auto_resume(output_dir, cfg)
     elif cfg.resume is not None:
         resumed = run_directory(cfg)
         cfg = resume_config(resumed, list(hydra_cfg.overrides.task))
         check_budget(cfg)
+        resolve_device(cfg.device)
         if resumed != output_dir.resolve():  # hydra.run.dir elsewhere (a link to it is the same place): log there too
             handler = logging.FileHandler(resumed / f"{hydra_cfg.job.name}.log")
             handler.setFormatter(logging.Formatter("[%(asctime)s][%(name)s][%(levelname)s] - %(message)s"))
@@ -143,14 +146,20 @@ def prepare(cfg: DictConfig) -> tuple[DictConfig, Path]:
 
 
 def summary(result: RunResult) -> str:
-    """One line: episodes, final return, success or not."""
+    """One line: episodes, final return, success or not, the numerical events recovered (``health.csv``)."""
     first = first_success(result.successes)
     outcome = f"first success at episode {first}" if first is not None else "no successful episode"
     final_ok = "succeeded" if result.successes[-1] else "did not succeed"
     return (
-        f"{len(result.returns)} episodes, final return {result.returns[-1]:.2f} ({final_ok}); {outcome}. "
-        f"TensorBoard: tensorboard --logdir {result.output_dir}"
+        f"{len(result.returns)} episodes, final return {result.returns[-1]:.2f} ({final_ok}); {outcome}; "
+        f"{health_summary(result.health)}. TensorBoard: tensorboard --logdir {result.output_dir}"
     )
+
+
+def health_summary(totals: dict[str, int]) -> str:
+    """The run's recovered numerical events in a few words, e.g. ``health: 3 cholesky_jitter (health.csv)``."""
+    seen = [f"{n} {event}" for event, n in totals.items() if n]
+    return f"health: {', '.join(seen)} (recovered; per episode in health.csv)" if seen else "health: no numerical event"
 
 
 def one_line(err: BaseException) -> str:
@@ -225,6 +234,10 @@ def train(cfg: DictConfig) -> None:
 def main() -> None:
     """``qtl-train``: Hydra's composition errors and bad input as one line on stderr (exit status 1)."""
     verbose = _TRACEBACKS["shown"] = _wants_traceback(sys.argv)
+    # qtl's hydra/launcher/ray preset shares its name with the plugin's schema, which it fills in whole (the
+    # plugin's own default includes itself and cannot join a running cluster): Hydra's notice of it is not for users.
+    warnings.filterwarnings("ignore", message=r"\s*'hydra/launcher/ray' is validated against ConfigStore schema",
+                            category=UserWarning)
     previous = os.environ.get(FULL_ERROR)
     os.environ[FULL_ERROR] = "1"  # Hydra re-raises instead of printing its own multi-line report
     try:

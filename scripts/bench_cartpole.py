@@ -17,49 +17,29 @@ so a long benchmark can be completed over several calls.
 from __future__ import annotations
 
 import argparse
-import csv
 import json
-import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import benchlib
-
-from qtl.launch import ensure_run
-from qtl.metrics import first_success
-from qtl.recorder import METRICS_FILE, TIMINGS_FILE
+from qtl.bench import (
+    ROOT,
+    command_line,
+    commit,
+    machine,
+    markdown_table,
+    parse_with_overrides,
+    run_all,
+    run_seed,
+    today,
+    write_section,
+)
 
 REQUIRED_EPISODES = 8  # success within this many episodes, the random one included (--within)
 REQUIRED_SEEDS = 4  # in at least this many of ...
 JUDGED_SEEDS = 5  # ... this many seeds; fewer seeds make a partial run that is not judged
 
 
-def read_csv(path: Path) -> list[dict[str, str]]:
-    with open(path, newline="") as f:
-        return list(csv.DictReader(f))
-
-
-def run_seed(seed: int, episodes: int, run_dir: Path, overrides: list[str], threads: int = 1) -> dict:
-    """One full learning run through the CLI (reused or resumed when there is one); its per-episode figures."""
-    wall = ensure_run([f"seed={seed}", f"episodes={episodes}", *overrides], run_dir, episodes + 1, threads=threads)
-    rows = read_csv(run_dir / METRICS_FILE)[: episodes + 1]
-    timings = read_csv(run_dir / TIMINGS_FILE)[: episodes + 1]
-    learned = [t for t, r in zip(timings, rows, strict=True) if r["kind"] == "policy"]
-    successes = [int(r["success"]) for r in rows]
-    return {
-        "seed": seed,
-        "run_dir": benchlib.display_path(run_dir),
-        "returns": [float(r["return"]) for r in rows],
-        "predicted_returns": [float(r["predicted_return"]) for r in rows],
-        "successes": successes,
-        "first_success": first_success(successes),
-        "model_fit_s_per_episode": sum(float(t["model_fit_s"]) for t in learned) / max(len(learned), 1),
-        "policy_search_s_per_episode": sum(float(t["policy_search_s"]) for t in learned) / max(len(learned), 1),
-        "wall_s": wall,  # of this call: 0 for a reused run, the resumed part only for a resumed one
-    }
-
-
 def main() -> None:
+    """Run every seed (reusing or resuming runs), judge the requirement, write the JSON and the section."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
     parser.add_argument("--within", type=int, default=REQUIRED_EPISODES,
@@ -68,24 +48,23 @@ def main() -> None:
     parser.add_argument("--jobs", type=int, default=2, help="runs in parallel")
     parser.add_argument("--threads", type=int, default=1, help="torch threads per run")
     parser.add_argument("--tag", default="", help="names the result files and table (e.g. 'particles')")
-    parser.add_argument("--runs-dir", type=Path, default=benchlib.ROOT / "runs" / "bench_cartpole")
-    args, overrides = benchlib.parse_with_overrides(parser)
+    parser.add_argument("--runs-dir", type=Path, default=ROOT / "runs" / "bench_cartpole")
+    args, overrides = parse_with_overrides(parser)
     if args.episodes is None:
         args.episodes = args.within - 1
 
     name = "cartpole" + (f"-{args.tag}" if args.tag else "")
     runs_dir = args.runs_dir / name
-    results = benchlib.run_all(lambda s: run_seed(s, args.episodes, runs_dir / f"seed_{s}", overrides, args.threads),
-                               args.seeds, args.jobs)
+    results = run_all(lambda s: run_seed(s, args.episodes, runs_dir / f"seed_{s}", overrides, args.threads),
+                      args.seeds, args.jobs)
     solved = [r for r in results if r["first_success"] is not None and r["first_success"] < args.within]
     passed = len(solved) >= REQUIRED_SEEDS if len(results) >= JUDGED_SEEDS else None
 
-    info = {"date": benchlib.today(), "commit": benchlib.commit(), "command": benchlib.command_line(),
-            "machine": benchlib.machine(),
+    info = {"date": today(), "commit": commit(), "command": command_line(), "machine": machine(),
             "overrides": overrides, "episodes_per_run": args.episodes + 1, "jobs": args.jobs, "threads": args.threads,
             "required": f"success within {args.within} episodes in >= {REQUIRED_SEEDS} of {JUDGED_SEEDS} seeds",
             "passed": passed, "results": results}
-    out = benchlib.ROOT / "docs" / "bench" / f"{name}.json"
+    out = ROOT / "docs" / "bench" / f"{name}.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(info, indent=2) + "\n")
 
@@ -103,17 +82,14 @@ def main() -> None:
         + ({True: "met", False: "NOT met", None: "not judged: a partial run of fewer seeds"}[passed])
         + f" ({len(solved)} of {len(results)} seeds succeeded).**",
         "",
-        "| seed | first success (episode, 0 = random) | returns per episode | model fit (s/episode) | "
-        "policy search (s/episode) | wall (s, this call) |",
-        "| ---: | ---: | --- | ---: | ---: | ---: |",
+        markdown_table([[r["seed"], "—" if r["first_success"] is None else r["first_success"],
+                         " ".join(f"{v:.1f}" for v in r["returns"]), f"{r['model_fit_s_per_episode']:.1f}",
+                         f"{r['policy_search_s_per_episode']:.1f}", f"{r['wall_s']:.0f}" if r["wall_s"] else "reused"]
+                        for r in results],
+                       ["seed", "first success (episode, 0 = random)", "returns per episode", "model fit (s/episode)",
+                        "policy search (s/episode)", "wall (s, this call)"], "rrlrrr"),
     ]
-    for r in results:
-        first = "—" if r["first_success"] is None else str(r["first_success"])
-        curve = " ".join(f"{v:.1f}" for v in r["returns"])
-        wall = f"{r['wall_s']:.0f}" if r["wall_s"] else "reused"
-        lines.append(f"| {r['seed']} | {first} | {curve} | {r['model_fit_s_per_episode']:.1f} | "
-                     f"{r['policy_search_s_per_episode']:.1f} | {wall} |")
-    benchlib.write_section(f"bench_{name}", "\n".join(lines))
+    write_section(f"bench_{name}", "\n".join(lines))
     print("\n".join(lines))
 
 

@@ -41,7 +41,6 @@ import dataclasses
 import itertools
 import json
 import statistics
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -49,9 +48,20 @@ import numpy as np
 import torch
 from hydra import compose, initialize_config_module
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import benchlib
-
+from qtl.bench import (
+    ROOT,
+    command_line,
+    commit,
+    display_path,
+    first_successes,
+    machine,
+    markdown_table,
+    mean_std,
+    parse_with_overrides,
+    run_all,
+    today,
+    write_section,
+)
 from qtl.build import build
 from qtl.checkpoint import CHECKPOINT_DIR, load_checkpoint
 from qtl.config import register_configs
@@ -84,14 +94,17 @@ class Family:
 
 FAMILIES = {
     "mountaincar": Family("mountaincar", "power", "%", 1.0, (0.5, 1.5), (3.0,),
-                          benchlib.ROOT / "runs" / "experiments" / "mountaincar" / "source"),
+                          ROOT / "runs" / "experiments" / "mountaincar" / "source"),
     "cartpole": Family("cartpole", "pole_mass", "kg", 0.5, (0.8, 1.0, 1.5, 2.0), (5.0,),
-                       benchlib.ROOT / "runs" / "bench_cartpole" / "cartpole-fast"),
+                       ROOT / "runs" / "bench_cartpole" / "cartpole-fast"),
 }
 ARMS = ("pilco", "transfer", "qtl", "gated")  # the learning runs per target and seed
 EXPLORE_ARMS = ("pilco", "transfer")  # the runs per extra target of --explore (and "gated" with --gate)
 # What --explore-arms may choose: also QTL-PILCO (θ_s and ψ_s) and QTL-PILCO gated.
 EXPLORE_CHOICES = ("pilco", "transfer", "qtl", "gated", "gated_qtl")
+LEARNING_COLUMNS = ["target", "arm", "first success per seed", "solved", "AUC", "final", "Λ at the first model",
+                    "fell back after episode"]
+LEARNING_ALIGN = "lllrrrrl"
 EXPLORE_ARM_HELP = {  # how each arm's table describes it
     "pilco": "pilco: PILCO",
     "transfer": "transfer: θ-only transfer (`approach={approach} transfer.policy=false`, random initial episode)",
@@ -172,9 +185,9 @@ def compliance_verdict(family: Family, rows: dict[float, list[dict]]) -> dict[st
 
 def run_header() -> str:
     """How a section of this script names its run: the command, date, machine and commit."""
-    m = benchlib.machine()
-    return (f"`{benchlib.command_line()}` — {benchlib.today()}, {m['cpu']} ({m['cores']} cores), torch {m['torch']}, "
-            f"commit {benchlib.commit()}.")
+    m = machine()
+    return (f"`{command_line()}` — {today()}, {m['cpu']} ({m['cores']} cores), torch {m['torch']}, "
+            f"commit {commit()}.")
 
 
 def compliance_section(
@@ -187,7 +200,7 @@ def compliance_section(
         "",
         header,
         "",
-        f"Sources: `{benchlib.display_path(family.sources)}/seed_<k>` (last checkpoint: episode "
+        f"Sources: `{display_path(family.sources)}/seed_<k>` (last checkpoint: episode "
         f"{first['source_episode']} of seed {first['seed']}, m = {first['source_tuples']} tuples). Target tuples: "
         f"each target's initial random episode of the same seed ({first['tuples']} tuples), what the gate reads at "
         f"the first model. Last columns: the same from the initial episode run by the source's policy ψ_s, what the "
@@ -196,22 +209,23 @@ def compliance_section(
         "",
         "**Required: " + "; ".join(f"{k} — {'met' if ok else 'NOT met'}" for k, ok in verdict.items()) + ".**",
         "",
-        "| target | Λ, kernel (Scott bandwidth) | per seed | Λ, kernel, no bandwidth | Λ, likelihood ratio "
-        "| median distance (predictive sd) | median distance (bandwidths) | Λ, kernel, episode by ψ_s | per seed |",
-        "| --- | ---: | --- | ---: | ---: | ---: | ---: | ---: | --- |",
     ]
+    cells = []
     for value, per_seed in rows.items():
         kind = " (far)" if value in family.far else (" (source task)" if value == family.source_value else "")
-        lines.append(
-            f"| {family.label(value)}{kind} | {benchlib.mean_std([r['kernel'] for r in per_seed], 2)} | "
-            + " ".join(f"{r['kernel']:.2f}" for r in per_seed)
-            + f" | {benchlib.mean_std([r['kernel_no_bandwidth'] for r in per_seed], 3)} | "
-            f"{benchlib.mean_std([r['likelihood_ratio'] for r in per_seed], 3)} | "
-            f"{statistics.median(r['median_distance_in_predictive_sd'] for r in per_seed):.1f} | "
-            f"{statistics.median(r['median_distance_in_bandwidths'] for r in per_seed):.2f} | "
-            f"{benchlib.mean_std([r['kernel_source_policy'] for r in per_seed], 2)} | "
-            + " ".join(f"{r['kernel_source_policy']:.2f}" for r in per_seed) + " |"
-        )
+        cells.append([
+            f"{family.label(value)}{kind}", mean_std([r["kernel"] for r in per_seed], 2),
+            " ".join(f"{r['kernel']:.2f}" for r in per_seed), mean_std([r["kernel_no_bandwidth"] for r in per_seed], 3),
+            mean_std([r["likelihood_ratio"] for r in per_seed], 3),
+            f"{statistics.median(r['median_distance_in_predictive_sd'] for r in per_seed):.1f}",
+            f"{statistics.median(r['median_distance_in_bandwidths'] for r in per_seed):.2f}",
+            mean_std([r["kernel_source_policy"] for r in per_seed], 2),
+            " ".join(f"{r['kernel_source_policy']:.2f}" for r in per_seed),
+        ])
+    lines.append(markdown_table(cells, [
+        "target", "Λ, kernel (Scott bandwidth)", "per seed", "Λ, kernel, no bandwidth", "Λ, likelihood ratio",
+        "median distance (predictive sd)", "median distance (bandwidths)", "Λ, kernel, episode by ψ_s", "per seed",
+    ], "lrlrrrrrl"))
     return "\n".join(lines)
 
 
@@ -222,6 +236,17 @@ def fell_back_at(run_dir: Path) -> int | None:
         if state.get("fallen_back"):
             return int(path.stem.split("_")[1])
     return None
+
+
+def learning_row(target: str, arm: str, per_seed: list[dict], gated: bool) -> list[str]:
+    """One row of a learning table: an arm on a target over the seeds (the fall-backs for a gated arm only)."""
+    first_lambda = [r["compliance"][1] for r in per_seed if r["compliance"][1] == r["compliance"][1]]
+    return [target, arm, first_successes(per_seed),
+            f"{sum(r['first_success'] is not None for r in per_seed)}/{len(per_seed)}",
+            mean_std([r["auc"] for r in per_seed]), mean_std([r["final_performance"] for r in per_seed]),
+            mean_std(first_lambda, 2),
+            " ".join("—" if r["fell_back_after"] is None else str(r["fell_back_after"]) for r in per_seed)
+            if gated else ""]
 
 
 def link_experiment(root: Path, sources: Path, arms: list[str]) -> None:
@@ -254,7 +279,7 @@ def learn(family: Family, args: argparse.Namespace) -> tuple[dict, str]:
     gated = [*family.far, *(family.near if args.gate_on == "all" else ())]
     if "gated" in args.arms:
         jobs += [("gated", value, seed) for value in gated for seed in args.seeds]
-    benchlib.run_all(run, jobs, args.jobs)
+    run_all(run, jobs, args.jobs)
 
     link_experiment(root, family.sources, args.arms)
     figure, *others = plot_learning_curves(discover(root), args.figures / f"compliance_{family.task}_learning_curves")
@@ -270,14 +295,12 @@ def learn(family: Family, args: argparse.Namespace) -> tuple[dict, str]:
         f"`transfer.min_compliance={args.gate}` (the gate, kernel compliance); arm qtl: `approach={args.approach}` as "
         f"its preset (θ_s and ψ_s, initial episode run by ψ_s). {budget} episodes per run (1 random "
         f"+ {args.episodes} learned), one torch thread each, {args.jobs} in parallel. Runs: "
-        f"`{benchlib.display_path(root)}`. AUC: trapezoid over the {budget} episodes; final: mean of the last 3.",
+        f"`{display_path(root)}`. AUC: trapezoid over the {budget} episodes; final: mean of the last 3.",
         "",
         f"![learning curves, mean ± std over seeds]({figure.relative_to(args.figures.parent)})",
         "",
-        "| target | arm | first success per seed | solved | AUC | final | Λ at the first model "
-        "| fell back after episode |",
-        "| --- | --- | --- | ---: | ---: | ---: | ---: | --- |",
     ]
+    rows = []
     for value in values:
         for arm in [a for a in args.arms if a != "gated" or value in gated]:
             per_seed = []
@@ -288,20 +311,10 @@ def learn(family: Family, args: argparse.Namespace) -> tuple[dict, str]:
                                  "compliance": curve.compliance, "fell_back_after": fell_back_at(run_dir),
                                  **curve.summary()})
             results.setdefault(str(value), {})[arm] = per_seed
-            first_lambda = [r["compliance"][1] for r in per_seed if r["compliance"][1] == r["compliance"][1]]
-            cells = [
-                family.label(value) + (" (far)" if value in family.far else ""),
-                arm,
-                benchlib.first_successes(per_seed),
-                f"{sum(r['first_success'] is not None for r in per_seed)}/{len(per_seed)}",
-                benchlib.mean_std([r["auc"] for r in per_seed]),
-                benchlib.mean_std([r["final_performance"] for r in per_seed]),
-                benchlib.mean_std(first_lambda, 2),
-                " ".join("—" if r["fell_back_after"] is None else str(r["fell_back_after"]) for r in per_seed)
-                if arm == "gated" else "",
-            ]
-            lines.append("| " + " | ".join(cells) + " |")
-    lines += ["", "Returns per episode (target, arm, seed: curve):", ""]
+            rows.append(learning_row(family.label(value) + (" (far)" if value in family.far else ""), arm, per_seed,
+                                     gated=arm == "gated"))
+    lines += [markdown_table(rows, LEARNING_COLUMNS, LEARNING_ALIGN), "",
+              "Returns per episode (target, arm, seed: curve):", ""]
     for value, arms in results.items():
         for arm, per_seed in arms.items():
             for r in per_seed:
@@ -338,7 +351,7 @@ def explore(family: Family, args: argparse.Namespace) -> tuple[dict, str]:
         ensure_run(overrides, run_dir(arm, key, value, seed), args.episodes + 1)
 
     jobs = [(arm, target, seed) for seed in args.seeds for target in args.explore for arm in arms]
-    benchlib.run_all(run, jobs, args.jobs)
+    run_all(run, jobs, args.jobs)
     link_experiment(root, family.sources, arms)
     name = f"compliance_{family.task}_explore_learning_curves"
     args.figures.mkdir(parents=True, exist_ok=True)
@@ -354,15 +367,13 @@ def explore(family: Family, args: argparse.Namespace) -> tuple[dict, str]:
         f"{family.label(family.source_value)} source of the same seed: "
         + "; ".join(EXPLORE_ARM_HELP[arm].format(approach=args.approach, gate=args.gate) for arm in arms)
         + f". {budget} episodes per run (1 random + {args.episodes} learned), one torch thread each, {args.jobs} in "
-        f"parallel. Runs: `{benchlib.display_path(root)}`. AUC: trapezoid over the {budget} episodes; final: mean of "
+        f"parallel. Runs: `{display_path(root)}`. AUC: trapezoid over the {budget} episodes; final: mean of "
         "the last 3.",
         "",
         f"![learning curves, mean ± std over seeds]({figure.relative_to(args.figures.parent)})",
         "",
-        "| target | arm | first success per seed | solved | AUC | final | Λ at the first model "
-        "| fell back after episode |",
-        "| --- | --- | --- | ---: | ---: | ---: | ---: | --- |",
     ]
+    rows = []
     for key, value in args.explore:
         for arm in arms:
             per_seed = []
@@ -371,17 +382,9 @@ def explore(family: Family, args: argparse.Namespace) -> tuple[dict, str]:
                 per_seed.append({"seed": seed, "returns": curve.returns, "compliance": curve.compliance,
                                  "fell_back_after": fell_back_at(run_dir(arm, key, value, seed)), **curve.summary()})
             results.setdefault(f"{key}={value:g}", {})[arm] = per_seed
-            first_lambda = [r["compliance"][1] for r in per_seed if r["compliance"][1] == r["compliance"][1]]
-            lines.append("| " + " | ".join([
-                f"{key} = {value:g}", arm, benchlib.first_successes(per_seed),
-                f"{sum(r['first_success'] is not None for r in per_seed)}/{len(per_seed)}",
-                benchlib.mean_std([r["auc"] for r in per_seed]),
-                benchlib.mean_std([r["final_performance"] for r in per_seed]),
-                benchlib.mean_std(first_lambda, 2) if first_lambda else "—",
-                " ".join("—" if r["fell_back_after"] is None else str(r["fell_back_after"]) for r in per_seed)
-                if arm.startswith("gated") else "",
-            ]) + " |")
-    lines += ["", "Returns per episode (target, arm, seed: curve):", ""]
+            rows.append(learning_row(f"{key} = {value:g}", arm, per_seed, gated=arm.startswith("gated")))
+    lines += [markdown_table(rows, LEARNING_COLUMNS, LEARNING_ALIGN), "",
+              "Returns per episode (target, arm, seed: curve):", ""]
     for target, by_arm in results.items():
         for arm, per_seed in by_arm.items():
             lines += [f"- {target}, {arm}, seed {r['seed']}: " + " ".join(f"{v:.1f}" for v in r["returns"])
@@ -409,13 +412,14 @@ def measure(family: Family, args: argparse.Namespace) -> dict:
     rows = {v: [initial_compliance(family, v, s, args.overrides) for s in args.seeds] for v in values}
     verdict = compliance_verdict(family, rows)
     section = compliance_section(family, rows, verdict, args.seeds, run_header())
-    benchlib.write_section(f"bench_compliance-{family.task}", section)
+    write_section(f"bench_compliance-{family.task}", section)
     print(section, flush=True)
-    return {"date": benchlib.today(), "commit": benchlib.commit(), "command": benchlib.command_line(),
-            "machine": benchlib.machine(), "sources": benchlib.display_path(family.sources), "verdict": verdict,
+    return {"date": today(), "commit": commit(), "command": command_line(),
+            "machine": machine(), "sources": display_path(family.sources), "verdict": verdict,
             "compliance": {str(v): r for v, r in rows.items()}}
 
 def main() -> None:
+    """Λ per family, or the learning runs (``--learn``), or the exploration (``--explore``); JSON and sections."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--families", nargs="+", choices=list(FAMILIES), default=list(FAMILIES))
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
@@ -428,8 +432,8 @@ def main() -> None:
     parser.add_argument("--approach", default="qtl_bayesian", help="the transfer preset, run θ-only")
     parser.add_argument("--episodes", type=int, default=10, help="learned episodes per learning run")
     parser.add_argument("--jobs", type=int, default=2, help="learning runs in parallel (one torch thread each)")
-    parser.add_argument("--runs-dir", type=Path, default=benchlib.ROOT / "runs" / "bench_compliance")
-    parser.add_argument("--figures", type=Path, default=benchlib.ROOT / "docs" / "results",
+    parser.add_argument("--runs-dir", type=Path, default=ROOT / "runs" / "bench_compliance")
+    parser.add_argument("--figures", type=Path, default=ROOT / "docs" / "results",
                         help="where the learning-curve figure goes")
     parser.add_argument("--sources", nargs="*", default=[], metavar="FAMILY=DIR",
                         help="another directory of seed_<k> source runs for a family")
@@ -440,7 +444,7 @@ def main() -> None:
     parser.add_argument("--explore-arms", nargs="+", choices=EXPLORE_CHOICES,
                         help="the runs per --explore target (default: pilco transfer, and gated with --gate); qtl: "
                              "θ_s and ψ_s, gated_qtl: the same with the gate")
-    args, args.overrides = benchlib.parse_with_overrides(parser)
+    args, args.overrides = parse_with_overrides(parser)
     try:
         args.explore = parse_targets(args.explore)
     except ValueError as err:
@@ -470,21 +474,21 @@ def main() -> None:
     torch.set_num_threads(1)
     register_configs()
 
-    out = benchlib.ROOT / "docs" / "bench" / "compliance.json"
+    out = ROOT / "docs" / "bench" / "compliance.json"
     stored = json.loads(out.read_text()) if out.exists() else {}
     for name in args.families:
         family = families[name]
         if args.explore:  # only the exploration; the Λ table and the learning runs are left as stored
             entry = stored.get(name, {})
             entry["explore"], table = explore(family, args)
-            benchlib.write_section(f"bench_compliance_explore-{name}", table)
+            write_section(f"bench_compliance_explore-{name}", table)
             print(table, flush=True)
         else:
             entry = {**measure(family, args), **{k: v for k, v in stored.get(name, {}).items() if k == "explore"}}
             if args.learn:
                 entry["gate"] = args.gate
                 entry["learning"], table = learn(family, args)
-                benchlib.write_section(f"bench_compliance_gate-{name}", table)
+                write_section(f"bench_compliance_gate-{name}", table)
                 print(table, flush=True)
             elif "learning" in stored.get(name, {}):
                 entry["gate"], entry["learning"] = stored[name]["gate"], stored[name]["learning"]

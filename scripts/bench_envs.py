@@ -21,16 +21,24 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import json
-import sys
 from pathlib import Path
 from typing import Any
 
 import yaml
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import bench_cartpole
-import benchlib
-
+from qtl.bench import (
+    ROOT,
+    command_line,
+    commit,
+    machine,
+    markdown_table,
+    parse_with_overrides,
+    read_csv,
+    run_all,
+    run_seed,
+    today,
+    write_section,
+)
 from qtl.recorder import METRICS_FILE, TIMINGS_FILE
 
 EXAMPLES = ("pendulum", "mountaincar_continuous", "inverted_pendulum")  # configs/task/<name>.yaml
@@ -43,7 +51,7 @@ MEANINGS = {
 REQUIRED_EPISODES = 10  # success within this many episodes, the random one included (--within)
 REQUIRED_SEEDS = 2  # in at least this many of ...
 JUDGED_SEEDS = 3  # ... this many seeds; fewer seeds make a partial result that is not judged
-RESULTS = benchlib.ROOT / "docs" / "bench" / "envs.json"
+RESULTS = ROOT / "docs" / "bench" / "envs.json"
 SECTION = "bench_envs"
 
 
@@ -56,9 +64,9 @@ def success_test(task: dict[str, Any]) -> str:
 
 
 def describe_run(run_dir: Path, budget: int) -> dict[str, Any]:
-    """What ``bench_cartpole.run_seed`` does not read: lengths, the env's own returns, learning time, success test."""
-    rows = bench_cartpole.read_csv(run_dir / METRICS_FILE)[:budget]
-    timings = bench_cartpole.read_csv(run_dir / TIMINGS_FILE)[:budget]
+    """What :func:`qtl.bench.run_seed` does not read: lengths, the env's own returns, learning time, success test."""
+    rows = read_csv(run_dir / METRICS_FILE)[:budget]
+    timings = read_csv(run_dir / TIMINGS_FILE)[:budget]
     task = yaml.safe_load((run_dir / ".hydra" / "config.yaml").read_text())["task"]
     return {
         "lengths": [int(r["length"]) for r in rows],
@@ -85,6 +93,7 @@ def merge(previous: dict[str, Any], fresh: dict[str, Any]) -> dict[str, Any]:
 
 
 def _example_order(name: str) -> tuple[int, str]:
+    """Where an example's results go: the order of EXAMPLES, any other after them by name."""
     return (EXAMPLES.index(name) if name in EXAMPLES else len(EXAMPLES), name)
 
 
@@ -116,21 +125,18 @@ def table(results: dict[str, Any]) -> str:
             f"**Required: success within {env['within']} episodes in at least {REQUIRED_SEEDS} of {JUDGED_SEEDS} "
             f"seeds — {status} ({v['solved']} of {v['seeds']} seeds succeeded).**",
             "",
-            "| seed | first success (episode) | returns per episode | lengths | env's own return, last episode "
-            "| learning (s) | wall (s, that call) |",
-            "| ---: | ---: | --- | --- | ---: | ---: | ---: |",
+            markdown_table([[r["seed"], "—" if r["first_success"] is None else r["first_success"],
+                             " ".join(f"{x:.1f}" for x in r["returns"]), " ".join(str(n) for n in r["lengths"]),
+                             f"{r['env_returns'][-1]:.1f}", f"{r['learning_s']:.0f}",
+                             f"{r['wall_s']:.0f}" if r["wall_s"] else "reused"] for r in env["per_seed"]],
+                           ["seed", "first success (episode)", "returns per episode", "lengths",
+                            "env's own return, last episode", "learning (s)", "wall (s, that call)"], "rrllrrr"),
         ]
-        for r in env["per_seed"]:
-            first = "—" if r["first_success"] is None else str(r["first_success"])
-            curve = " ".join(f"{x:.1f}" for x in r["returns"])
-            lengths = " ".join(str(n) for n in r["lengths"])
-            wall = f"{r['wall_s']:.0f}" if r["wall_s"] else "reused"
-            lines.append(f"| {r['seed']} | {first} | {curve} | {lengths} | {r['env_returns'][-1]:.1f} | "
-                         f"{r['learning_s']:.0f} | {wall} |")
     return "\n".join(lines)
 
 
 def main() -> None:
+    """Run every example and seed (reusing or resuming runs), merge with the stored results, write the section."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--envs", nargs="+", default=list(EXAMPLES), choices=EXAMPLES)
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
@@ -139,8 +145,8 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, help="learned episodes per run (default: --within − 1)")
     parser.add_argument("--jobs", type=int, default=2, help="runs in parallel")
     parser.add_argument("--threads", type=int, default=1, help="torch threads per run")
-    parser.add_argument("--runs-dir", type=Path, default=benchlib.ROOT / "runs" / "bench_envs")
-    args, overrides = benchlib.parse_with_overrides(parser)
+    parser.add_argument("--runs-dir", type=Path, default=ROOT / "runs" / "bench_envs")
+    args, overrides = parse_with_overrides(parser)
     if args.episodes is None:
         args.episodes = args.within - 1
     if "inverted_pendulum" in args.envs and importlib.util.find_spec("mujoco") is None:
@@ -151,18 +157,18 @@ def main() -> None:
     def run(job: tuple[str, int]) -> dict[str, Any]:
         name, seed = job
         run_dir = args.runs_dir / name / f"seed_{seed}"
-        result = bench_cartpole.run_seed(seed, args.episodes, run_dir, [f"task={name}", *overrides], args.threads)
+        result = run_seed(seed, args.episodes, run_dir, [f"task={name}", *overrides], args.threads)
         return {"env": name, **result, **describe_run(run_dir, budget)}
 
     jobs = [(name, seed) for name in args.envs for seed in args.seeds]
-    done = benchlib.run_all(run, jobs, args.jobs)
+    done = run_all(run, jobs, args.jobs)
 
-    machine, fresh = benchlib.machine(), {}
+    measured_on, fresh = machine(), {}
     for name in args.envs:
         per_seed = [{k: v for k, v in r.items() if k != "env"} for r in done if r["env"] == name]
         fresh[name] = {
-            "date": benchlib.today(), "commit": benchlib.commit(), "command": benchlib.command_line(),
-            "machine": machine, "overrides": overrides, "jobs": args.jobs, "threads": args.threads,
+            "date": today(), "commit": commit(), "command": command_line(), "machine": measured_on,
+            "overrides": overrides, "jobs": args.jobs, "threads": args.threads,
             "within": args.within, "episodes_per_run": budget, "success_test": per_seed[0]["success_test"],
             "verdict": verdict(per_seed, args.within, budget), "per_seed": per_seed,
         }
@@ -171,7 +177,7 @@ def main() -> None:
     RESULTS.parent.mkdir(parents=True, exist_ok=True)
     RESULTS.write_text(json.dumps(results, indent=2) + "\n")
     section = table(results)
-    benchlib.write_section(SECTION, section)
+    write_section(SECTION, section)
     print(section)
 
 

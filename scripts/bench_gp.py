@@ -26,8 +26,18 @@ import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import benchlib
+from qtl.bench import (
+    ROOT,
+    commit,
+    display_path,
+    machine,
+    markdown_table,
+    peak_rss_mib,
+    relative_token,
+    today,
+    write_results,
+    write_section,
+)
 
 INPUT_DIM, OUTPUTS = 6, 4
 NOISE_STD = 0.05
@@ -57,7 +67,7 @@ def run_one(n: int, threads: int, seed: int, cold: bool) -> dict:
         return one_run(model, max_iter)
 
     DynamicsGP._optimise = counted  # type: ignore[method-assign]
-    baseline = benchlib.peak_rss_mib()
+    baseline = peak_rss_mib()
 
     tic = time.perf_counter()
     before = DynamicsGP(x[:-EPISODE], y[:-EPISODE])
@@ -86,7 +96,7 @@ def run_one(n: int, threads: int, seed: int, cold: bool) -> dict:
     stacked = DynamicsGP(x, y.repeat(1, DEFAULT_RESTARTS))
     row.update(stacked_restarts_eval_s=evidence_and_grad_s(stacked),
                sequential_restarts_eval_s=DEFAULT_RESTARTS * row["evidence_and_grad_s"],
-               peak_rss_mib=benchlib.peak_rss_mib())
+               peak_rss_mib=peak_rss_mib())
     return row
 
 
@@ -106,25 +116,21 @@ def mean(values: list[float]) -> float:
     return sum(values) / len(values)
 
 
-def table(rows: list[dict]) -> list[str]:
+def table(rows: list[dict]) -> str:
     """The markdown table of the results."""
-    lines = [
-        "| n | cold fit (s) | warm fit (s) | cold / warm | L-BFGS runs cold / warm | objective cold | "
-        "objective warm | objective previous (n − T) | log evidence + gradient (s) | R restarts: sequential / "
-        "stacked (s) | peak RSS (MiB) |",
-        "| ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
-    ]
+    cells = []
     for r in rows:
-        cold = "cold_s" in r
-        lines.append(
-            f"| {r['n']} | {r['cold_s']:.1f} | {r['warm_s']:.1f} | {r['cold_s'] / r['warm_s']:.1f}x | "
-            f"{r['cold_runs']} / {r['warm_runs']} | {mean(r['cold_objective']):.4f} | "
-            if cold else f"| {r['n']} | — | {r['warm_s']:.1f} | — | — / {r['warm_runs']} | — | "
-        )
-        lines[-1] += (f"{mean(r['warm_objective']):.4f} | {mean(r['previous_objective']):.4f} | "
-                      f"{r['evidence_and_grad_s']:.3f} | {r['sequential_restarts_eval_s']:.3f} / "
-                      f"{r['stacked_restarts_eval_s']:.3f} | {r['peak_rss_mib']:.0f} |")
-    return lines
+        cold = ([f"{r['cold_s']:.1f}", f"{r['warm_s']:.1f}", f"{r['cold_s'] / r['warm_s']:.1f}x",
+                 f"{r['cold_runs']} / {r['warm_runs']}", f"{mean(r['cold_objective']):.4f}"] if "cold_s" in r else
+                ["—", f"{r['warm_s']:.1f}", "—", f"— / {r['warm_runs']}", "—"])
+        cells.append([r["n"], *cold, f"{mean(r['warm_objective']):.4f}", f"{mean(r['previous_objective']):.4f}",
+                      f"{r['evidence_and_grad_s']:.3f}",
+                      f"{r['sequential_restarts_eval_s']:.3f} / {r['stacked_restarts_eval_s']:.3f}",
+                      f"{r['peak_rss_mib']:.0f}"])
+    return markdown_table(cells, [
+        "n", "cold fit (s)", "warm fit (s)", "cold / warm", "L-BFGS runs cold / warm", "objective cold",
+        "objective warm", "objective previous (n − T)", "log evidence + gradient (s)",
+        "R restarts: sequential / stacked (s)", "peak RSS (MiB)"], "r" * 11)
 
 
 def evidence(rows: list[dict]) -> str:
@@ -148,13 +154,14 @@ def evidence(rows: list[dict]) -> str:
 
 
 def main() -> None:
+    """Fit each size in its own subprocess (or one size, as that subprocess); write the JSON and the section."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", type=int, nargs="+", default=[250, 500, 1000, 2000])
     parser.add_argument("--cold-sizes", type=int, nargs="*", default=[250, 500, 1000])
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--machine", default=None, help="how the machine is named in the docs (default: lscpu's)")
-    parser.add_argument("--output", type=Path, default=benchlib.ROOT / "docs" / "bench" / "gp.json")
+    parser.add_argument("--output", type=Path, default=ROOT / "docs" / "bench" / "gp.json")
     parser.add_argument("--no-docs", action="store_true", help="do not rewrite the section of docs/benchmarks.md")
     parser.add_argument("--one", type=int, help=argparse.SUPPRESS)  # child process: one size
     parser.add_argument("--cold", action="store_true", help=argparse.SUPPRESS)
@@ -180,12 +187,12 @@ def main() -> None:
         print(f"n={n}: {cold}warm {r['warm_s']:.1f} s ({mean(r['warm_objective']):.4f}), "
               f"{r['warm_runs']} warm L-BFGS run(s)", flush=True)
 
-    command = " ".join(["python", "scripts/bench_gp.py", *(shlex.quote(benchlib.relative_token(token))
+    command = " ".join(["python", "scripts/bench_gp.py", *(shlex.quote(relative_token(token))
                                                           for token in sys.argv[1:])])
-    info = {"date": benchlib.today(), "command": command, "commit": benchlib.commit(),
-            "machine": benchlib.machine(),
+    info = {"date": today(), "command": command, "commit": commit(),
+            "machine": machine(),
             "machine_name": args.machine, "threads": args.threads, "load_average_at_start": load}
-    benchlib.write_results(args.output, info, rows)
+    write_results(args.output, info, rows)
     if not args.no_docs:
         write_docs(info, rows, args.output)
 
@@ -200,7 +207,7 @@ def write_docs(info: dict, rows: list[dict], output: Path) -> None:
         f"`{info['command']}` at commit {info['commit']} — {info['date']}, {name}, {info['threads']} torch threads, "
         f"torch {m['torch']}, float64, load average {info['load_average_at_start']:.2f} at the start. "
         f"E = {OUTPUTS} outputs, D = {INPUT_DIM} inputs, {rows[0]['restarts']} restarts × ≤ {rows[0]['max_iter']} "
-        f"L-BFGS iterations, exact Cholesky throughout. Results: `{benchlib.display_path(output)}`.",
+        f"L-BFGS iterations, exact Cholesky throughout. Results: `{display_path(output)}`.",
         "",
         "*Cold* is today's default fit (`model.warm_start=false`): PILCO's heuristic θ, then the perturbed "
         f"restarts. *Warm* (`model.warm_start=true`) starts from θ_p of the same data less its last episode "
@@ -210,14 +217,14 @@ def write_docs(info: dict, rows: list[dict], output: Path) -> None:
         "The last columns time one evaluation of objective and gradient for the R restarts one after another "
         "(R × the E-output batch) and stacked as one R·E-output batch (a leading restart dimension).",
         "",
-        *table(rows),
+        table(rows),
         "",
         evidence(rows),
     ]
     if any("cold_s" not in r for r in rows):
         lines += ["", "Cold fits run at the `--cold-sizes` only (the default leaves out n = 2000, where the cold fit "
                   f"alone took {COLD_2000_S} s in this script's run of 2026-11-21 on the same VM)."]
-    benchlib.write_section("bench_gp", "\n".join(lines))
+    write_section("bench_gp", "\n".join(lines))
 
 
 if __name__ == "__main__":

@@ -19,14 +19,22 @@ import statistics
 import sys
 import time
 from collections.abc import Callable
-from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import bench_rollout
-import benchlib
-
+from qtl.bench import (
+    ROOT,
+    command_line,
+    commit,
+    display_path,
+    machine,
+    markdown_table,
+    today,
+    write_results,
+    write_section,
+)
+from qtl.bench.search import rollout_and_gradient
+from qtl.bench.synthetic import HORIZON, make_case
 from qtl.kernels import Engine, weighted_exp_sum
 from qtl.kernels.native import build as native_build
 
@@ -38,7 +46,7 @@ ROLLOUT_N = 250
 THREADS = 2
 BACKENDS = ("torch", "native")
 MACHINE = "2-core dev VM"
-OUTPUT = benchlib.ROOT / "docs" / "bench" / "kernels.json"
+OUTPUT = ROOT / "docs" / "bench" / "kernels.json"
 
 
 def problem(n: int, restarts: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -89,11 +97,11 @@ def bench_exp_sum(n: int, restarts: int, repeats: int) -> dict:
 
 def bench_rollout_gradient(repeats: int) -> dict:
     """One moment-matching rollout (H = 50) plus the policy gradient at n = ROLLOUT_N, both backends."""
-    row: dict = {"n": ROLLOUT_N, "horizon": bench_rollout.HORIZON}
+    row: dict = {"n": ROLLOUT_N, "horizon": HORIZON}
     for name in BACKENDS:
-        propagator, start = bench_rollout.make_case(ROLLOUT_N, torch.float64, Engine.resolve(name, "reference"))
-        row[f"{name}_s"] = median_time(lambda: bench_rollout.rollout_and_gradient(propagator, start), repeats)  # noqa: B023
-        row[f"{name}_value"] = bench_rollout.rollout_and_gradient(propagator, start)
+        propagator, start = make_case(ROLLOUT_N, torch.float64, Engine.resolve(name, "reference"))
+        row[f"{name}_s"] = median_time(lambda: rollout_and_gradient(propagator, start, HORIZON), repeats)  # noqa: B023
+        row[f"{name}_value"] = rollout_and_gradient(propagator, start, HORIZON)
     row["speedup"] = row["torch_s"] / row["native_s"]
     return row
 
@@ -117,17 +125,13 @@ def markdown(info: dict, rows: list[dict], rollout: dict) -> str:
         "(other work on the machine slows the torch path's threads most)  ",
         f"Results: `{info['output']}`",
         "",
-        "| n | R | forward torch (ms) | forward native (ms) | speed-up | fwd + bwd torch (ms) "
-        "| fwd + bwd native (ms) | speed-up | max rel. diff |",
-        "| ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
+        markdown_table([[r["n"], r["restarts"], f"{r['torch_forward_ms']:.2f}", f"{r['native_forward_ms']:.2f}",
+                         f"{r['forward_speedup']:.2f}×", f"{r['torch_forward_backward_ms']:.2f}",
+                         f"{r['native_forward_backward_ms']:.2f}", f"{r['forward_backward_speedup']:.2f}×",
+                         f"{r['max_rel_diff']:.1e}"] for r in rows],
+                       ["n", "R", "forward torch (ms)", "forward native (ms)", "speed-up", "fwd + bwd torch (ms)",
+                        "fwd + bwd native (ms)", "speed-up", "max rel. diff"], "r" * 9),
     ]
-    for r in rows:
-        lines.append(
-            f"| {r['n']} | {r['restarts']} | {r['torch_forward_ms']:.2f} | {r['native_forward_ms']:.2f} "
-            f"| {r['forward_speedup']:.2f}× | {r['torch_forward_backward_ms']:.2f} "
-            f"| {r['native_forward_backward_ms']:.2f} | {r['forward_backward_speedup']:.2f}× "
-            f"| {r['max_rel_diff']:.1e} |"
-        )
     lines += [
         "",
         f"One moment-matching rollout (H = {rollout['horizon']}) plus the policy gradient at n = {rollout['n']} "
@@ -153,22 +157,22 @@ def main() -> None:
             print(rows[-1], file=sys.stderr)
     rollout = bench_rollout_gradient(max(3, args.repeats // 2))
     print(rollout, file=sys.stderr)
-    machine = benchlib.machine()
+    measured_on = machine()
     info = {
-        "date": benchlib.today(),
-        "command": benchlib.command_line(),
+        "date": today(),
+        "command": command_line(),
         "machine": MACHINE,
-        "cpu": machine["cpu"],
-        "torch": machine["torch"],
+        "cpu": measured_on["cpu"],
+        "torch": measured_on["torch"],
         "threads": THREADS,
         "repeats": args.repeats,
-        "commit": benchlib.commit(),
+        "commit": commit(),
         "load_average_1min": [round(load_before, 2), round(os.getloadavg()[0], 2)],
-        "output": benchlib.display_path(OUTPUT),
+        "output": display_path(OUTPUT),
     }
-    benchlib.write_results(OUTPUT, {**info, "rollout": rollout}, rows)
+    write_results(OUTPUT, {**info, "rollout": rollout}, rows)
     section = markdown(info, rows, rollout)
-    benchlib.write_section("bench_kernels", section)
+    write_section("bench_kernels", section)
     print(section)
 
 

@@ -27,16 +27,24 @@ from typing import Any
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import benchlib
-from bench_policy_search import SEARCH_EPISODE, batched_round
-from bench_scale import compose_stage, stage_model
-
+from qtl.bench import (
+    ROOT,
+    command_line,
+    commit,
+    display_path,
+    machine,
+    markdown_table,
+    today,
+    write_results,
+    write_section,
+)
+from qtl.bench.scale import compose_stage, stage_model
+from qtl.bench.search import SEARCH_EPISODE, batched_round
 from qtl.policies import batched_policy, psi_names, set_psi, stack_psi
 from qtl.seeding import SEARCH_STREAM, torch_generator
 
 PRESETS = {"cartpole": "cartpole_source", "mountaincar": "mountaincar_source", "aircraft": "aircraft_source"}
-DEFAULT_OUTPUT = benchlib.ROOT / "docs" / "bench" / "pairs.json"
+DEFAULT_OUTPUT = ROOT / "docs" / "bench" / "pairs.json"
 SECTION = "bench_pairs"
 
 
@@ -124,21 +132,18 @@ def markdown(rows: list[dict[str, Any]], info: dict[str, Any]) -> str:
         "measured in the same run. Max rel. diff of V and of ∂V/∂ψ: lower against full, and (for scale: two correct "
         "evaluations of an ill-conditioned round) full against the torch twin (`kernels.moments=fused`).",
         "",
-        "| task | E | pairs (a = b) | H | m | R | full (CPU s) | lower (CPU s) | ratio | lower vs full: V, ∂V/∂ψ "
-        "| full vs torch: V, ∂V/∂ψ |",
-        "| --- | ---: | --- | ---: | ---: | ---: | ---: | ---: | ---: | --- | --- |",
+        markdown_table([[r["task"], r["outputs"], f"{r['pairs']} ({r['outputs']})", r["horizon"], r["inducing"],
+                         r["restarts"], f"{r['full_s']:.3f}", f"{r['lower_s']:.3f}", f"{r['ratio']:.2f}×",
+                         f"{r['value_rel_diff']:.1e}, {r['grad_rel_diff']:.1e}",
+                         f"{r['torch_value_rel_diff']:.1e}, {r['torch_grad_rel_diff']:.1e}"] for r in rows],
+                       ["task", "E", "pairs (a = b)", "H", "m", "R", "full (CPU s)", "lower (CPU s)", "ratio",
+                        "lower vs full: V, ∂V/∂ψ", "full vs torch: V, ∂V/∂ψ"], "lrlrrrrrrll"),
     ]
-    for r in rows:
-        lines.append(
-            f"| {r['task']} | {r['outputs']} | {r['pairs']} ({r['outputs']}) | {r['horizon']} | {r['inducing']} "
-            f"| {r['restarts']} | {r['full_s']:.3f} | {r['lower_s']:.3f} | {r['ratio']:.2f}× "
-            f"| {r['value_rel_diff']:.1e}, {r['grad_rel_diff']:.1e} "
-            f"| {r['torch_value_rel_diff']:.1e}, {r['torch_grad_rel_diff']:.1e} |"
-        )
     return "\n".join(lines)
 
 
 def main() -> None:
+    """Measure each preset's round both ways; write the JSON and (unless ``--no-docs``) the section."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--experiments", nargs="+", choices=list(PRESETS), default=["cartpole", "mountaincar"])
     parser.add_argument("--threads", type=int, default=1, help="torch threads (a sweep job uses one)")
@@ -154,14 +159,14 @@ def main() -> None:
         rows.append(measure(experiment, args.repeats, args.seed))
         print({k: v for k, v in rows[-1].items() if not k.endswith("_times")}, file=sys.stderr, flush=True)
     output = args.output.resolve()
-    info = {"date": benchlib.today(), "command": benchlib.command_line(), "commit": benchlib.commit(),
-            "machine": benchlib.machine(), "vector_width": vector_width(), "threads": args.threads,
+    info = {"date": today(), "command": command_line(), "commit": commit(),
+            "machine": machine(), "vector_width": vector_width(), "threads": args.threads,
             "repeats": args.repeats, "seed": args.seed,
-            "load_before": load_before, "load_after": os.getloadavg()[0], "output": benchlib.display_path(output)}
-    benchlib.write_results(output, info, rows)
+            "load_before": load_before, "load_after": os.getloadavg()[0], "output": display_path(output)}
+    write_results(output, info, rows)
     section = markdown(rows, info)
     if not args.no_docs:
-        benchlib.write_section(SECTION, section)
+        write_section(SECTION, section)
     print(section)
 
 

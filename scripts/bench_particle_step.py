@@ -17,16 +17,23 @@ from __future__ import annotations
 
 import argparse
 import statistics
-import sys
 import time
 from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import benchlib
-from probe_policy_search import loaded, refitted
-
+from qtl.bench import (
+    ROOT,
+    command_line,
+    commit,
+    display_path,
+    machine,
+    markdown_table,
+    today,
+    write_results,
+    write_section,
+)
+from qtl.bench.refit import loaded, refitted
 from qtl.checkpoint import latest_checkpoint
 from qtl.seeding import torch_generator
 
@@ -38,12 +45,13 @@ VALUE_RTOL = 1e-6
 
 
 def main() -> None:
+    """Time each form in alternation on the run's data; check their values agree; write the JSON and the section."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("run_dir", type=Path)
     parser.add_argument("--checkpoint", type=Path, help="default: the run's latest")
     parser.add_argument("--repeats", type=int, default=7, help="timed evaluations per form, alternating")
     parser.add_argument("--threads", type=int, default=1)
-    parser.add_argument("--output", type=Path, default=benchlib.ROOT / "docs" / "bench" / "particle_step.json")
+    parser.add_argument("--output", type=Path, default=ROOT / "docs" / "bench" / "particle_step.json")
     parser.add_argument("--no-docs", action="store_true", help="do not write the section of docs/benchmarks.md")
     args = parser.parse_args()
     if not args.run_dir.is_dir():
@@ -87,8 +95,8 @@ def main() -> None:
                  for form in forms for a, b in zip(values[form], values["reference"], strict=True))
     medians = {form: statistics.median(ts) for form, ts in times.items()}
     result = {
-        "run": benchlib.display_path(args.run_dir.resolve()),
-        "checkpoint": benchlib.display_path(Path(checkpoint_path).resolve()),
+        "run": display_path(args.run_dir.resolve()),
+        "checkpoint": display_path(Path(checkpoint_path).resolve()),
         "n": len(data),
         "particles": cfg.propagation.num_particles,
         "horizon": parts.task.horizon,
@@ -100,35 +108,34 @@ def main() -> None:
         "ratios": {form: medians[form] / medians["reference"] for form in forms},
         "max_value_relative_difference": spread,
     }
-    info = {"command": benchlib.command_line(), "date": benchlib.today(), "commit": benchlib.commit(),
-            "machine": benchlib.machine()}
-    benchlib.write_results(args.output, info, [result])
+    info = {"command": command_line(), "date": today(), "commit": commit(),
+            "machine": machine()}
+    write_results(args.output, info, [result])
     print(f"n = {result['n']}: " + ", ".join(f"{form} {medians[form]:.3f} s ({result['ratios'][form]:.2f}×)"
                                              for form in forms) + f"; values agree to {spread:.1e}")
     if spread > VALUE_RTOL:
         raise SystemExit(f"the two forms' values differ by {spread:.2e} (relative), beyond {VALUE_RTOL:g}")
     if not args.no_docs:
-        benchlib.write_section("particle_step", markdown(result, info, args.output))
+        write_section("particle_step", markdown(result, info, args.output))
 
 
 def markdown(result: dict, info: dict, output: Path) -> str:
     """The section of docs/benchmarks.md: each form's median and its ratio to the plain form."""
-    machine, medians, ratios = info["machine"], result["median_s"], result["ratios"]
+    measured_on, medians, ratios = info["machine"], result["median_s"], result["ratios"]
     names = {"reference": "plain autograd form (old path)", "fused": "fused torch op", "native": "compiled op"}
     return "\n".join([
         "## Particle rollout + gradient: the RBF network's forward forms",
         "",
-        f"`{info['command']}` at {info['commit']}, {info['date']}, {machine['cpu']}, "
-        f"{machine['torch_threads']} torch thread(s); JSON `{benchlib.display_path(output)}`. One search evaluation "
+        f"`{info['command']}` at {info['commit']}, {info['date']}, {measured_on['cpu']}, "
+        f"{measured_on['torch_threads']} torch thread(s); JSON `{display_path(output)}`. One search evaluation "
         f"(a {result['horizon']}-step rollout of P = {result['particles']} particles and its ∂V/∂ψ) on "
         f"`{result['checkpoint']}`'s data (n = {result['n']}), its policy ({result['num_basis']} bases) with dropout "
         f"{result['dropout']}, the forms alternating in one process ({len(result['times_s']['reference'])} timed "
         f"evaluations each, after one warm-up); `kernels.moments={result['formulation']}`. The forms' values "
         f"agree to {result['max_value_relative_difference']:.1e} (relative).",
         "",
-        "| form of `RBFNetwork.forward` | median s per evaluation | ratio to the old path |",
-        "| --- | ---: | ---: |",
-        *(f"| {names[form]} | {medians[form]:.3f} | {ratios[form]:.2f}× |" for form in medians),
+        markdown_table([[names[form], f"{medians[form]:.3f}", f"{ratios[form]:.2f}×"] for form in medians],
+                       ["form of `RBFNetwork.forward`", "median s per evaluation", "ratio to the old path"], "lrr"),
     ])
 
 

@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import argparse
 import functools
-import hashlib
 import json
 import logging
 import statistics
@@ -42,29 +41,37 @@ import sys
 import time
 import traceback
 import warnings
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
-from hydra import compose, initialize_config_module
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import OmegaConf
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import benchlib
-
-from qtl.build import DTYPES, Parts, build, resolve_device
-from qtl.config import register_configs
-from qtl.data import TransitionDataset, gp_training_pairs
-from qtl.episodes import policy_actor, random_actor, run_episode
-from qtl.features import AngleFeatures
-from qtl.gaussian import Gaussian
+from qtl.bench import (
+    ROOT,
+    command_line,
+    commit,
+    display_path,
+    machine,
+    markdown_table,
+    peak_rss_mib,
+    today,
+    write_results,
+    write_section,
+)
+from qtl.bench.search import (
+    CACHE_DIR,
+    MODEL_FIT_RESTARTS,
+    PROPAGATORS,
+    SEARCH_EPISODE,
+    batched_rollout_grad,
+    compose_config,
+    ensure_model,
+    rollout_and_gradient,
+)
+from qtl.build import DTYPES, build, resolve_device
 from qtl.models import DynamicsGP
-from qtl.policies import RBFPolicy, SquashedPolicy, batched_policy, psi_names, set_psi, stack_psi
-from qtl.propagation import Propagator
-from qtl.seeding import ENV_STREAM, SEARCH_STREAM, derive_seed, seed_everything, torch_generator
-from qtl.task import Task
+from qtl.seeding import SEARCH_STREAM, seed_everything, torch_generator
 
 SIZES = [250, 500, 1000]
 COMPARE_SIZES = [250]
@@ -88,19 +95,8 @@ def variant_name(variant: tuple[str, bool, str]) -> str:
     """'backend/restarts/moments' of a comparison variant, e.g. 'native/batched/fused'."""
     backend, batched, moments = variant
     return f"{backend}/{RESTART_MODES[batched]}/{moments}"
-# The loop's settings per propagator: Hydra overrides of the default `train` config.
-# The particle rows' shared settings: the mc_pilco recipe's propagation (fresh noise every evaluation, the reward
-# of the drawn states), so that pathwise against marginal compares like with like.
-PARTICLE_SEARCH = ["propagation=particles", "propagation.resample_every=1", "propagation.expected_reward=false",
-                   "optimizer=adam", "optimizer.steps=500"]
-PROPAGATORS: dict[str, list[str]] = {
-    "moment_matching": ["propagation=moment_matching", "optimizer=lbfgs"],
-    "particles": PARTICLE_SEARCH,
-    # Pathwise GP samples (issue 19), with the random features and the float32 path values of the mc_pilco
-    # recipe (those two act on pathwise sampling only); otherwise the row above, whose sampling is marginal.
-    "particles_pathwise": [*PARTICLE_SEARCH, "propagation.sampling=pathwise", "propagation.num_features=256",
-                           "propagation.path_dtype=float32"],
-}
+
+
 # Issue 8's targets: wall time of one policy search, by (propagator, n), in seconds.
 TARGETS: dict[tuple[str, int], float] = {
     ("moment_matching", 250): 15.0,
@@ -118,17 +114,9 @@ QUOTED_REFERENCES = [
     "PyTorch particle PILCO: 265–430 s per policy search (500 Adam steps, 400 particles), cart-pole, "
     "60–240 data points.",
 ]
-# Data collection: random-action episodes alternate with episodes of a random RBF policy whose
-# targets (before squashing) are drawn with this std, so that the data cover swings, not only rest.
-RANDOM_POLICY_TARGET_STD = 1.0
-DATA_POLICY_STREAM = 7  # random stream of the data-collecting RBF policies (not one of the loop's)
-SEARCH_EPISODE = 1  # the search's generator is the one the loop's first learned episode gets
-MODEL_FIT_RESTARTS = 1
-DATA_VERSION = 1  # bump when the data or the fit change, to invalidate cached models
 MAX_RECORDED_WARNINGS = 5
 PRODUCT_REPEATS = 20  # timed variance products (the particles' arithmetic floor) after one warm-up
-CACHE_DIR = benchlib.ROOT / "runs" / "bench_policy_search"
-DEFAULT_OUTPUT = benchlib.ROOT / "docs" / "bench" / "policy_search.json"
+DEFAULT_OUTPUT = ROOT / "docs" / "bench" / "policy_search.json"
 SECTION = "bench_policy_search"
 DESCRIPTION = (
     "Wall time of one full policy search with the loop's real settings (moment matching: the default "
@@ -181,87 +169,11 @@ class _WarningLog(logging.Handler):
         self.messages.append(record.getMessage())
 
 
-def compose_config(propagator: str, dtype_name: str, overrides: list[str]) -> DictConfig:
-    """The default ``train`` config with the propagator's settings, the dtype and ``overrides``."""
-    register_configs()
-    with initialize_config_module(config_module="qtl.configs", version_base="1.3"):
-        return compose(config_name="train", overrides=[*PROPAGATORS[propagator], f"dtype={dtype_name}", *overrides])
-
-
-def data_policy(task: Task, num_basis: int, generator: torch.Generator) -> SquashedPolicy:
-    """A random RBF policy for collecting data: support points ~ N(0, I) in feature space, wide targets."""
-    targets = RANDOM_POLICY_TARGET_STD * torch.randn(num_basis, task.action_dim, generator=generator,
-                                                     dtype=torch.float64)
-    inner = RBFPolicy(task.feature_dim, task.action_dim, num_basis, targets=targets, generator=generator)
-    return SquashedPolicy(inner, torch.as_tensor(task.action_bound, dtype=torch.float64))
-
-
-def collect(task: Task, num_basis: int, n: int, seed: int) -> TransitionDataset:
-    """n real transitions: random-action and random-RBF-policy episodes in turn, the last one cut."""
-    features = AngleFeatures(task.state_dim, task.angle_dims)
-    data = TransitionDataset(task.state_dim, task.action_dim, task.angle_dims)
-    env = task.make_env()
-    try:
-        episode = 0
-        while len(data) < n:
-            if episode % 2 == 0:
-                actor = random_actor(task, np.random.default_rng(derive_seed(seed, episode, DATA_POLICY_STREAM)))
-            else:
-                policy = data_policy(task, num_basis, torch_generator(seed, episode, DATA_POLICY_STREAM))
-                actor = policy_actor(policy, features, torch.float64)
-            real = run_episode(env, task, actor, derive_seed(seed, episode, ENV_STREAM))
-            keep = min(len(real.actions), n - len(data))
-            data.add_episode(real.states[: keep + 1], real.actions[:keep])
-            episode += 1
-    finally:
-        env.close()
-    return data
-
-
-def model_path(cfg: DictConfig, n: int, seed: int, cache_dir: Path) -> Path:
-    """Where the fitted model of n tuples of this task and seed is cached."""
-    key = json.dumps({"task": OmegaConf.to_container(cfg.task, resolve=True), "n": n, "seed": seed,
-                      "restarts": MODEL_FIT_RESTARTS, "version": DATA_VERSION}, sort_keys=True)
-    return cache_dir / f"{cfg.task.name}_n{n}_seed{seed}_{hashlib.sha1(key.encode()).hexdigest()[:10]}.pt"
-
-
-def ensure_model(cfg: DictConfig, n: int, seed: int, cache_dir: Path) -> tuple[Path, dict[str, Any]]:
-    """The cached model of n tuples (fitted and saved first if missing) and how it was made."""
-    path = model_path(cfg, n, seed, cache_dir)
-    info_path = path.with_suffix(".json")
-    if path.exists() and info_path.exists():
-        return path, {**json.loads(info_path.read_text()), "cached": True}
-    task = build(cfg).task
-    data = collect(task, int(cfg.task.policy_size), n, seed)
-    inputs, targets = gp_training_pairs(data, AngleFeatures(task.state_dim, task.angle_dims), torch.float64)
-    model = DynamicsGP(inputs, targets)
-    tic = time.perf_counter()
-    model.fit(restarts=MODEL_FIT_RESTARTS, max_iter=int(cfg.model.max_iter),
-              generator=torch.Generator().manual_seed(seed))
-    theta = model.hyperparameters
-    info = {"n": len(data), "episodes": data.num_episodes, "fit_s": time.perf_counter() - tic,
-            "fit_restarts": MODEL_FIT_RESTARTS, "fit_max_iter": int(cfg.model.max_iter), "dtype": "float64",
-            "signal_variance": theta.signal_variance.tolist(), "noise_variance": theta.noise_variance.tolist(),
-            "snr": (theta.signal_variance / theta.noise_variance).sqrt().tolist()}
-    path.parent.mkdir(parents=True, exist_ok=True)
-    model.save(path)
-    info_path.write_text(json.dumps(info, indent=2) + "\n")
-    return path, {**info, "cached": False}
-
-
 def warm_up_optimisers() -> None:
     """Pay torch.optim's one-off lazy import (torch._dynamo, ~1 s) here: in the loop the GP fit pays it first."""
     dummy = torch.nn.Parameter(torch.zeros(1))
     torch.optim.Adam([dummy])
     torch.optim.LBFGS([dummy])
-
-
-def rollout_and_gradient(propagator: Propagator, start: Gaussian, horizon: int) -> float:
-    """One rollout of H steps and the gradient of V w.r.t. ψ; returns V."""
-    propagator.policy.zero_grad()
-    value = propagator.expected_return(start, horizon)
-    value.backward()
-    return float(value.detach())
 
 
 def variance_product_s(num_outputs: int, num_particles: int, n: int, dtype: torch.dtype,
@@ -301,7 +213,7 @@ def measure(job: dict[str, Any]) -> dict[str, Any]:
             result.update(horizon=task.horizon, propagation=OmegaConf.to_container(cfg.propagation, resolve=True),
                           optimizer=OmegaConf.to_container(cfg.optimizer, resolve=True),
                           kernels=OmegaConf.to_container(cfg.kernels, resolve=True),
-                          kernel_backend=parts.kernel_backend, setup_rss_mib=benchlib.peak_rss_mib())
+                          kernel_backend=parts.kernel_backend, setup_rss_mib=peak_rss_mib())
 
             # -- One rollout + gradient: a warm-up, then the median of the repeats. ------------------
             stage = "rollout + gradient"
@@ -341,35 +253,8 @@ def measure(job: dict[str, Any]) -> dict[str, Any]:
             logging.getLogger("qtl").removeHandler(log_warnings)
     seen = list(dict.fromkeys([*log_warnings.messages, *(f"{w.category.__name__}: {w.message}" for w in caught)]))
     result["warnings"] = seen[:MAX_RECORDED_WARNINGS]
-    result["peak_rss_mib"] = benchlib.peak_rss_mib()
+    result["peak_rss_mib"] = peak_rss_mib()
     return result
-
-
-def batched_round(parts: Parts, model: DynamicsGP, policy: SquashedPolicy,
-                  seed: int) -> tuple[Callable[[], None], int]:
-    """One round of the search as a call: the rollout + gradient of its R starting points at once (ψ `R x ...`); R."""
-    states = parts.search.starting_states(policy, torch_generator(seed, SEARCH_EPISODE, SEARCH_STREAM))
-    batched = batched_policy(policy, len(states))
-    set_psi(batched, stack_psi(states, psi_names(policy)), (len(states),))
-    propagator = parts.make_propagator(model, batched, parts.reward, angle_dims=parts.task.angle_dims)
-
-    def round_() -> None:
-        batched.zero_grad()
-        propagator.expected_return(parts.start, parts.task.horizon).sum().backward()
-
-    return round_, len(states)
-
-
-def batched_rollout_grad(parts: Parts, model: DynamicsGP, policy: SquashedPolicy, seed: int,
-                         repeats: int) -> dict[str, Any]:
-    """One rollout + gradient of the search's R starting points at once (ψ `R x ...`): median time and R."""
-    round_, restarts = batched_round(parts, model, policy, seed)
-    times = []
-    for _ in range(repeats + 1):  # the first is a warm-up
-        tic = time.perf_counter()
-        round_()
-        times.append(time.perf_counter() - tic)
-    return {"batched_rollout_grad_s_median": statistics.median(times[1:]), "batched_restarts": restarts}
 
 
 # What a comparison job adds to a job: the exp-sum backend, whether the restarts are batched, the formulation.
@@ -420,11 +305,8 @@ def comparison_markdown(rows: list[dict[str, Any]]) -> list[str]:
         "",
         COMPARE_DESCRIPTION,
         "",
-        "| n | backend | restarts | moments | policy search (s) | ratio | rollouts | evaluations | s / rollout "
-        "| rollout + gradient (s) | ratio | batched, R restarts (s) | predicted return (per restart) |",
-        "| ---: | --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- |",
     ]
-    errors = []
+    errors, cells = [], []
     for r in rows:
         if "error" in r:
             errors.append(f"{len(errors) + 1}. n = {r['n']}, {r['backend']}, {RESTART_MODES[r['batched']]}, "
@@ -436,12 +318,13 @@ def comparison_markdown(rows: list[dict[str, Any]]) -> list[str]:
                    if "batched_rollout_grad_s_median" in r else "—")
         found = (f"{r['value_found']:.4g} ({', '.join(f'{v:.4g}' for v in r['run_values'])})"
                  if "value_found" in r else (f"error ({len(errors)})" if "error" in r else "—"))
-        lines.append(
-            f"| {r['n']} | {r['backend']} | {RESTART_MODES[r['batched']]} | {_variant(r)[2]} | "
-            f"{_seconds(r, 'search_s')} | "
-            f"{ratio['search_s_ratio']} | {r.get('rollouts', '—')} | {r.get('evaluations', '—')} | {per_rollout} | "
-            f"{_seconds(r, 'rollout_grad_s_median')} | {ratio['rollout_grad_s_median_ratio']} | {batched} | {found} |"
-        )
+        cells.append([r["n"], r["backend"], RESTART_MODES[r["batched"]], _variant(r)[2], _seconds(r, "search_s"),
+                      ratio["search_s_ratio"], r.get("rollouts", "—"), r.get("evaluations", "—"), per_rollout,
+                      _seconds(r, "rollout_grad_s_median"), ratio["rollout_grad_s_median_ratio"], batched, found])
+    lines.append(markdown_table(cells, [
+        "n", "backend", "restarts", "moments", "policy search (s)", "ratio", "rollouts", "evaluations", "s / rollout",
+        "rollout + gradient (s)", "ratio", "batched, R restarts (s)", "predicted return (per restart)"],
+        "rlllrrrrrrrrl"))
     if errors:
         lines += ["", "Errors:", "", *errors]
     return lines
@@ -532,11 +415,8 @@ def markdown(results: list[dict[str, Any]], info: dict[str, Any], comparison: li
         "",
         *settings_lines(results),
         "",
-        "| propagator | n | dtype | rollout + gradient (s, median) | policy search (s) | evaluations | s / evaluation "
-        "| peak RSS (MiB) | target | met? |",
-        "| --- | ---: | --- | ---: | ---: | ---: | ---: | ---: | --- | --- |",
     ]
-    errors = []
+    errors, cells = [], []
     for r in results:
         target, met = judge(r, info["judged"], info["why_not_judged"])
         evals = str(r["evaluations"]) if "evaluations" in r else "—"
@@ -545,10 +425,11 @@ def markdown(results: list[dict[str, Any]], info: dict[str, Any], comparison: li
         if "error" in r:
             errors.append(f"{len(errors) + 1}. {r['propagator']}, n = {r['n']}, {r['dtype']}: `{r['error']}`")
             met = f"error ({len(errors)})"
-        lines.append(
-            f"| {r['propagator']} | {r['n']} | {r['dtype']} | {_seconds(r, 'rollout_grad_s_median')} | "
-            f"{_seconds(r, 'search_s')} | {evals} | {per_eval} | {rss} | {target} | {met} |"
-        )
+        cells.append([r["propagator"], r["n"], r["dtype"], _seconds(r, "rollout_grad_s_median"),
+                      _seconds(r, "search_s"), evals, per_eval, rss, target, met])
+    lines.append(markdown_table(cells, [
+        "propagator", "n", "dtype", "rollout + gradient (s, median)", "policy search (s)", "evaluations",
+        "s / evaluation", "peak RSS (MiB)", "target", "met?"], "lrlrrrrrll"))
     if errors:
         lines += ["", "Errors:", "", *errors]
     ratios = sampling_ratio_lines(results)
@@ -653,14 +534,14 @@ def main() -> None:
 
     overrides_all = [*args.overrides, *args.mm_overrides, *args.particles_overrides]
     info = {
-        "date": benchlib.today(),
-        "commit": benchlib.commit(),
-        "command": benchlib.command_line(),
-        "machine": benchlib.machine(),
+        "date": today(),
+        "commit": commit(),
+        "command": command_line(),
+        "machine": machine(),
         "threads": args.threads,
         "device": args.device,
         "gpu": torch.cuda.get_device_name(device) if device.type == "cuda" else None,
-        "output": benchlib.display_path(output),
+        "output": display_path(output),
         "overrides_all": overrides_all,
         "judged": not overrides_all and not args.skip_search and device.type == "cpu",
         "why_not_judged": "the targets are for 2 CPU threads" if device.type != "cpu" else "settings overridden",
@@ -673,10 +554,10 @@ def main() -> None:
         r["target"], r["met"] = judge(r, info["judged"], info["why_not_judged"])
     add_ratios(comparison)
     info["comparison"] = comparison
-    benchlib.write_results(output, info, results)
+    write_results(output, info, results)
     section = compare_only_markdown(info, comparison) if args.compare_only else markdown(results, info, comparison)
     if not args.no_docs:
-        benchlib.write_section(SECTION + suffix, section)
+        write_section(SECTION + suffix, section)
     print(section)
 
 

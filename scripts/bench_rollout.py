@@ -21,30 +21,25 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import benchlib
-
+from qtl.bench import (
+    ROOT,
+    command_line,
+    commit,
+    display_path,
+    machine,
+    markdown_table,
+    today,
+    write_results,
+    write_section,
+)
+from qtl.bench.search import rollout_and_gradient
+from qtl.bench.synthetic import HORIZON, make_case
 from qtl.build import DTYPES
-from qtl.envs.rewards import SaturatingReward
-from qtl.features import AngleFeatures
-from qtl.gaussian import Gaussian
 from qtl.kernels import moments as kernel_moments
 from qtl.kernels.engine import DEFAULT_ENGINE, Engine
-from qtl.models import DynamicsGP
-from qtl.policies import RBFPolicy, SquashedPolicy
-from qtl.propagation import MomentMatching
-from qtl.rewards import ExpectedSaturatingReward
 
-HORIZON = 50
-STATE_DIM = 4
-ANGLE_DIMS = (2,)
-NUM_BASIS = 50
-ACTION_BOUND = 10.0
-POLE_LENGTH = 0.6
-COST_WIDTH = 0.25
 THREADS = int(os.environ.get("BENCH_THREADS", "2"))
 DESCRIPTION = (
     "One moment-matching rollout of H = 50 steps plus the gradient of V w.r.t. the policy parameters ψ "
@@ -58,43 +53,7 @@ DENSE_DESCRIPTION = (
     "Ablation: the `n x n` kernel sums as plain autograd ops (whole matrices, kept for backward at every "
     "step) instead of the blocked, recomputing `weighted_exp_sum`."
 )
-BENCH_DIR = Path(__file__).resolve().parent.parent / "docs" / "bench"
-
-
-def cartpole_reward() -> ExpectedSaturatingReward:
-    """Tip distance to the upright target, width 0.25 m."""
-    tip = np.array([[1.0, 0.0, 0.0, POLE_LENGTH, 0.0], [0.0, 0.0, 0.0, 0.0, -POLE_LENGTH]])
-    spec = SaturatingReward(
-        state_dim=STATE_DIM,
-        angle_dims=ANGLE_DIMS,
-        target=(0.0, 0.0, 0.0, 0.0, -1.0),
-        weight=tuple(map(tuple, tip.T @ tip)),
-        width=COST_WIDTH,
-    )
-    return ExpectedSaturatingReward.from_spec(spec)
-
-
-def make_case(n: int, dtype: torch.dtype, engine: Engine = DEFAULT_ENGINE) -> tuple[MomentMatching, Gaussian]:
-    """A GP on n synthetic cart-pole-like transitions, an RBF policy, the start distribution; moments by ``engine``."""
-    gen = torch.Generator().manual_seed(0)
-    x = torch.randn(n, STATE_DIM, generator=gen, dtype=torch.float64) * torch.tensor([1.0, 2.0, 3.0, 4.0])
-    u = ACTION_BOUND * (2 * torch.rand(n, 1, generator=gen, dtype=torch.float64) - 1)
-    feats = AngleFeatures(STATE_DIM, ANGLE_DIMS)(x)
-    delta = 0.1 * torch.stack([x[:, 1], torch.sin(x[:, 2]) + 0.05 * u[:, 0], x[:, 3], torch.cos(x[:, 2]) * x[:, 3]], -1)
-    model = DynamicsGP(torch.cat([feats, u], -1), delta + 0.01 * torch.randn(n, STATE_DIM, generator=gen))
-    policy = SquashedPolicy(RBFPolicy(feats.shape[-1], 1, NUM_BASIS, generator=gen), ACTION_BOUND).to(dtype)
-    propagator = MomentMatching(model.posterior_cache(), policy, cartpole_reward(), angle_dims=ANGLE_DIMS, dtype=dtype,
-                                engine=engine)
-    start = Gaussian(torch.zeros(STATE_DIM, dtype=dtype), 0.01 * torch.eye(STATE_DIM, dtype=dtype))
-    return propagator, start
-
-
-def rollout_and_gradient(propagator: MomentMatching, start: Gaussian) -> float:
-    """One rollout of H steps and the gradient of V w.r.t. ψ; returns V."""
-    propagator.policy.zero_grad()
-    value = propagator.expected_return(start, HORIZON)
-    value.backward()
-    return float(value.detach())
+BENCH_DIR = ROOT / "docs" / "bench"
 
 
 def dense_weighted_exp_sum(a: torch.Tensor, b: torch.Tensor, w: torch.Tensor, block_rows: int | None = None,
@@ -110,11 +69,11 @@ def worker(n: int, dtype_name: str, repeats: int, dense: bool = False) -> dict:
         kernel_moments.weighted_exp_sum = dense_weighted_exp_sum
     propagator, start = make_case(n, DTYPES[dtype_name])
     rss_setup = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    value = rollout_and_gradient(propagator, start)  # warm-up
+    value = rollout_and_gradient(propagator, start, HORIZON)  # warm-up
     times = []
     for _ in range(repeats):
         tic = time.perf_counter()
-        rollout_and_gradient(propagator, start)
+        rollout_and_gradient(propagator, start, HORIZON)
         times.append(time.perf_counter() - tic)
     forward = []
     for _ in range(repeats):
@@ -151,16 +110,12 @@ def markdown(results: list[dict], info: dict, dense: bool) -> str:
         f"`{info['command']}` at commit {info['commit']} — {info['date']}, {m['cpu']} ({m['cores']} cores), "
         f"{THREADS} torch threads, torch {m['torch']}. Results: `{info['output']}`.",
         "",
-        "| n | dtype | variant | rollout + gradient (s, median) | rollout only (s) | peak RSS (MiB) "
-        "| setup RSS (MiB) | V |",
-        "| ---: | --- | --- | ---: | ---: | ---: | ---: | ---: |",
+        markdown_table([[r["n"], r["dtype"], r["variant"], f"{r['rollout_grad_s_median']:.2f}",
+                         f"{r['rollout_only_s_median']:.2f}", f"{r['peak_rss_mib']:.0f}", f"{r['setup_rss_mib']:.0f}",
+                         f"{r['value']:.4f}"] for r in results],
+                       ["n", "dtype", "variant", "rollout + gradient (s, median)", "rollout only (s)",
+                        "peak RSS (MiB)", "setup RSS (MiB)", "V"], "rllrrrrr"),
     ]
-    for r in results:
-        lines.append(
-            f"| {r['n']} | {r['dtype']} | {r['variant']} | {r['rollout_grad_s_median']:.2f} | "
-            f"{r['rollout_only_s_median']:.2f} | {r['peak_rss_mib']:.0f} | {r['setup_rss_mib']:.0f} | "
-            f"{r['value']:.4f} |"
-        )
     return "\n".join(lines)
 
 
@@ -190,11 +145,11 @@ def main() -> None:
             results.append(json.loads(out.strip().splitlines()[-1]))
             print(json.dumps(results[-1]), file=sys.stderr)
     output = args.output or BENCH_DIR / ("rollout_dense.json" if args.dense else "rollout.json")
-    info = {"date": benchlib.today(), "commit": benchlib.commit(), "command": benchlib.command_line(),
-            "machine": benchlib.machine(), "output": benchlib.display_path(output)}
-    benchlib.write_results(output, info, results)
+    info = {"date": today(), "commit": commit(), "command": command_line(),
+            "machine": machine(), "output": display_path(output)}
+    write_results(output, info, results)
     section = markdown(results, info, args.dense)
-    benchlib.write_section("bench_rollout_dense" if args.dense else "bench_rollout", section)
+    write_section("bench_rollout_dense" if args.dense else "bench_rollout", section)
     print(section)
 
 if __name__ == "__main__":

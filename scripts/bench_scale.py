@@ -26,35 +26,34 @@ import json
 import math
 import os
 import sys
-import time
 from pathlib import Path
 from typing import Any
 
 import torch
-from hydra import compose, initialize_config_module
 from hydra.core.override_parser.overrides_parser import OverridesParser
 from omegaconf import DictConfig
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import benchlib
-from bench_policy_search import batched_rollout_grad, collect
-
-from qtl.build import Parts, build
-from qtl.config import register_configs
-from qtl.models import DynamicsGP, SparseDynamicsGP
+from qtl.bench import (
+    ROOT,
+    command_line,
+    commit,
+    display_path,
+    machine,
+    markdown_table,
+    model_label,
+    parse_with_overrides,
+    peak_rss_mib,
+    today,
+    write_results,
+    write_section,
+)
+from qtl.bench.scale import compose_stage, model_facts, stage_model
+from qtl.bench.search import batched_rollout_grad
 
 EXPERIMENTS = ("cartpole", "mountaincar", "aircraft")
 STAGES = (("source", "_source"), ("target", ""))
 SECTION = "bench_scale"
-DEFAULT_OUTPUT = benchlib.ROOT / "docs" / "bench" / "scale.json"
-
-
-def compose_stage(preset: str, overrides: list[str]) -> DictConfig:
-    """The composed config of one experiment stage, with its ``hydra`` node (the sweeper's values)."""
-    register_configs()
-    with initialize_config_module(config_module="qtl.configs", version_base="1.3"):
-        return compose(config_name="train", overrides=[f"experiment={preset}", *overrides],
-                       return_hydra_config=True)
+DEFAULT_OUTPUT = ROOT / "docs" / "bench" / "scale.json"
 
 
 def sweep_runs(cfg: DictConfig) -> int:
@@ -74,28 +73,6 @@ def episodes_done(stage_dir: Path, episodes: int) -> int:
     return done
 
 
-def stage_model(cfg: DictConfig, seed: int) -> tuple[Parts, DynamicsGP | SparseDynamicsGP, int, float]:
-    """A stage's parts and the model it fits on the task's own transitions just past ``model.sparse_above``: n, fit (s).
-
-    (Without a threshold: the whole run's tuples, on the exact GP.)
-    """
-    parts = build(cfg)
-    task = parts.task
-    threshold = cfg.model.get("sparse_above")
-    n = int(threshold) + task.horizon if threshold is not None else (int(cfg.episodes) + 1) * task.horizon
-    data = collect(task, int(cfg.task.policy_size), n, seed)
-    tic = time.perf_counter()
-    model = parts.fit_dynamics(data, torch.Generator().manual_seed(seed))
-    return parts, model, len(data), time.perf_counter() - tic
-
-
-def model_facts(model: DynamicsGP | SparseDynamicsGP) -> dict[str, Any]:
-    """Which model a stage fitted: ``model`` ('exact' or 'sparse') and ``inducing`` (m, or None)."""
-    sparse = isinstance(model, SparseDynamicsGP)
-    return {"model": "sparse" if sparse else "exact",
-            "inducing": int(model.inducing_points.shape[0]) if sparse else None}
-
-
 def measure_task(cfg: DictConfig, repeats: int, seed: int) -> dict[str, Any]:
     """The model past the sparse threshold (fit time) and one batched search round through it."""
     parts, model, n, fit_s = stage_model(cfg, seed)
@@ -105,7 +82,7 @@ def measure_task(cfg: DictConfig, repeats: int, seed: int) -> dict[str, Any]:
     return {"task": task.name, "state_dim": task.state_dim, "action_dim": task.action_dim, "horizon": task.horizon,
             "n": n, **model_facts(model), "fit_s": fit_s,
             "fit_restarts": int(cfg.model.restarts), "round_s": round_["batched_rollout_grad_s_median"],
-            "restarts": round_["batched_restarts"], "peak_rss_mib": benchlib.peak_rss_mib()}
+            "restarts": round_["batched_restarts"], "peak_rss_mib": peak_rss_mib()}
 
 
 def stage_row(experiment: str, stage: str, cfg: DictConfig, task: dict[str, Any]) -> dict[str, Any]:
@@ -133,13 +110,11 @@ def markdown(tasks: list[dict[str, Any]], rows: list[dict[str, Any]], info: dict
         "sparse GP, fitted cold with the preset's restarts): the fit, and one policy-search round (rollout + "
         "gradient of the optimizer's R restarts at once, median of the repeats after a warm-up).",
         "",
-        "| task | state, action dims | H | n | model | fit (s) | one round, R restarts (s) |",
-        "| --- | --- | ---: | ---: | --- | ---: | ---: |",
+        markdown_table([[t["task"], f"{t['state_dim']}, {t['action_dim']}", t["horizon"], t["n"], model_label(t),
+                         f"{t['fit_s']:.1f}", f"{t['round_s']:.2f} (R = {t['restarts']})"] for t in tasks],
+                       ["task", "state, action dims", "H", "n", "model", "fit (s)", "one round, R restarts (s)"],
+                       "llrrlrr"),
     ]
-    for t in tasks:
-        lines.append(f"| {t['task']} | {t['state_dim']}, {t['action_dim']} | {t['horizon']} | {t['n']} | "
-                     f"{benchlib.model_label(t)} | "
-                     f"{t['fit_s']:.1f} | {t['round_s']:.2f} (R = {t['restarts']}) |")
     lines += [
         "",
         "The bound of each sweep on one core: runs × learned episodes × `optimizer.max_iter` rounds × one round "
@@ -147,15 +122,13 @@ def markdown(tasks: list[dict[str, Any]], rows: list[dict[str, Any]], info: dict
         "early costs less; model fits not counted). Done: the learned episodes already in "
         "the sweep's run directories (`sweep.root`, in the last column).",
         "",
-        "| experiment | stage | task | runs | learned episodes | rounds ≤ | search ≤ (min/episode) | sweep ≤ (core-h) "
-        "| done (episodes) | remaining ≤ (core-h) | sweep.root |",
-        "| --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- |",
+        markdown_table([[r["experiment"], r["stage"], r["task"], r["runs"], r["episodes"], r["rounds_max"],
+                         f"{r['search_bound_s'] / 60:.1f}", f"{r['sweep_bound_core_h']:.1f}",
+                         f"{r['episodes_done']} of {r['runs'] * r['episodes']}", f"{r['remaining_bound_core_h']:.1f}",
+                         f"`{r['sweep_root']}`"] for r in rows],
+                       ["experiment", "stage", "task", "runs", "learned episodes", "rounds ≤", "search ≤ (min/episode)",
+                        "sweep ≤ (core-h)", "done (episodes)", "remaining ≤ (core-h)", "sweep.root"], "lllrrrrrrrl"),
     ]
-    for r in rows:
-        lines.append(f"| {r['experiment']} | {r['stage']} | {r['task']} | {r['runs']} | {r['episodes']} | "
-                     f"{r['rounds_max']} | {r['search_bound_s'] / 60:.1f} | {r['sweep_bound_core_h']:.1f} | "
-                     f"{r['episodes_done']} of {r['runs'] * r['episodes']} | {r['remaining_bound_core_h']:.1f} | "
-                     f"`{r['sweep_root']}` |")
     total = sum(r["sweep_bound_core_h"] for r in rows)
     left = sum(r["remaining_bound_core_h"] for r in rows)
     lines += ["", f"All stages: ≤ {total:.0f} core-hours of policy search, ≤ {left:.0f} of them still to run."]
@@ -163,6 +136,7 @@ def markdown(tasks: list[dict[str, Any]], rows: list[dict[str, Any]], info: dict
 
 
 def main() -> None:
+    """Measure each task once, bound each stage's sweep; write the JSON and (unless ``--no-docs``) the section."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--experiments", nargs="+", choices=EXPERIMENTS, default=list(EXPERIMENTS))
     parser.add_argument("--threads", type=int, default=1, help="torch threads (a sweep job uses one)")
@@ -172,7 +146,7 @@ def main() -> None:
                         help="each experiment's sweep.root is DIR/<name> (default: the preset's)")
     parser.add_argument("--output", type=Path, default=DEFAULT_OUTPUT)
     parser.add_argument("--no-docs", action="store_true")
-    args, overrides = benchlib.parse_with_overrides(parser)
+    args, overrides = parse_with_overrides(parser)
     if any(o.split("=", 1)[0].lstrip("+~") == "sweep.root" for o in overrides):
         parser.error("sweep.root would be shared by every experiment: give --experiments-root DIR (DIR/<name> each)")
     torch.set_num_threads(args.threads)
@@ -189,14 +163,14 @@ def main() -> None:
                 print(json.dumps(measured[name]), file=sys.stderr, flush=True)
             rows.append(stage_row(experiment, stage, cfg, measured[name]))
     output = args.output.resolve()
-    info = {"date": benchlib.today(), "command": benchlib.command_line(), "commit": benchlib.commit(),
-            "machine": benchlib.machine(), "threads": args.threads, "repeats": args.repeats, "seed": args.seed,
+    info = {"date": today(), "command": command_line(), "commit": commit(),
+            "machine": machine(), "threads": args.threads, "repeats": args.repeats, "seed": args.seed,
             "overrides": overrides, "load_before": load_before, "load_after": os.getloadavg()[0],
-            "output": benchlib.display_path(output)}
-    benchlib.write_results(output, {**info, "tasks": list(measured.values())}, rows)
+            "output": display_path(output)}
+    write_results(output, {**info, "tasks": list(measured.values())}, rows)
     section = markdown(list(measured.values()), rows, info)
     if not args.no_docs:
-        benchlib.write_section(SECTION, section)
+        write_section(SECTION, section)
     print(section)
 
 

@@ -23,16 +23,26 @@ from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import benchlib
-from bench_policy_search import collect, compose_config, rollout_and_gradient
-
+from qtl.bench import (
+    ROOT,
+    command_line,
+    commit,
+    display_path,
+    machine,
+    markdown_table,
+    model_label,
+    peak_rss_mib,
+    today,
+    write_results,
+    write_section,
+)
+from qtl.bench.search import collect, compose_config, rollout_and_gradient
 from qtl.build import build
 from qtl.models import SparseDynamicsGP
 
 SIZES = [500, 1000, 2000, 4000]
 SECTION = "bench_sparse"
-DEFAULT_OUTPUT = benchlib.ROOT / "docs" / "bench" / "sparse.json"
+DEFAULT_OUTPUT = ROOT / "docs" / "bench" / "sparse.json"
 
 
 def measure(n: int, restarts: int, repeats: int, seed: int, overrides: list[str]) -> dict:
@@ -56,7 +66,7 @@ def measure(n: int, restarts: int, repeats: int, seed: int, overrides: list[str]
             "inducing": int(model.inducing_points.shape[0]) if sparse else None, "fit_s": fit_s,
             "fit_restarts": restarts, "rollout_grad_s_median": statistics.median(times),
             "sparse_above": cfg.model.get("sparse_above"), "horizon": task.horizon,
-            "peak_rss_mib": benchlib.peak_rss_mib()}
+            "peak_rss_mib": peak_rss_mib()}
 
 
 def markdown(results: list[dict], info: dict) -> str:
@@ -74,16 +84,15 @@ def markdown(results: list[dict], info: dict) -> str:
         f"{results[0]['horizon']}, median of the repeats after a warm-up). The peak RSS is the process's so far. "
         f"Results: `{info['output']}`.",
         "",
-        "| n | model | fit (s) | rollout + gradient (s) | peak RSS (MiB) |",
-        "| ---: | --- | ---: | ---: | ---: |",
+        markdown_table([[r["n"], model_label(r), f"{r['fit_s']:.1f}", f"{r['rollout_grad_s_median']:.2f}",
+                         f"{r['peak_rss_mib']:.0f}"] for r in results],
+                       ["n", "model", "fit (s)", "rollout + gradient (s)", "peak RSS (MiB)"], "rlrrr"),
     ]
-    for r in results:
-        lines.append(f"| {r['n']} | {benchlib.model_label(r)} | {r['fit_s']:.1f} | {r['rollout_grad_s_median']:.2f} | "
-                     f"{r['peak_rss_mib']:.0f} |")
     return "\n".join(lines) + "\n"
 
 
 def main() -> None:
+    """Fit and time each size in turn; write the JSON and (unless ``--no-docs``) the section."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", type=int, nargs="+", default=SIZES)
     parser.add_argument("--restarts", type=int, default=1, help="model.restarts of every fit")
@@ -100,14 +109,14 @@ def main() -> None:
         results.append(measure(n, args.restarts, args.repeats, args.seed, args.overrides))
         print(json.dumps(results[-1]), file=sys.stderr, flush=True)
     output = args.output.resolve()
-    info = {"date": benchlib.today(), "commit": benchlib.commit(), "command": benchlib.command_line(),
-            "machine": benchlib.machine(), "threads": args.threads, "restarts": args.restarts,
+    info = {"date": today(), "commit": commit(), "command": command_line(),
+            "machine": machine(), "threads": args.threads, "restarts": args.restarts,
             "overrides": args.overrides,
-            "output": benchlib.display_path(output)}
-    benchlib.write_results(output, info, results)
+            "output": display_path(output)}
+    write_results(output, info, results)
     section = markdown(results, info)
     if not args.no_docs:
-        benchlib.write_section(SECTION, section)
+        write_section(SECTION, section)
     print(section)
 
 

@@ -30,9 +30,17 @@ from typing import Any
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import benchlib
-
+from qtl.bench import (
+    ROOT,
+    command_line,
+    commit,
+    display_path,
+    machine,
+    markdown_table,
+    today,
+    write_results,
+    write_section,
+)
 from qtl.data import TransitionDataset, gp_training_pairs
 from qtl.features import AngleFeatures
 from qtl.models import GPHyperparameters, SparseDynamicsGP
@@ -40,9 +48,9 @@ from qtl.models.gp_evidence import DEFAULT_MAX_ITER
 
 INPUT_DIM, OUTPUTS, INDUCING = 6, 4, 300
 NOISE_STD = 0.05
-DEFAULT_CHECKPOINT = benchlib.ROOT / "docs" / "experiments" / "cartpole" / "source" / "seed_0" / "checkpoints" \
+DEFAULT_CHECKPOINT = ROOT / "docs" / "experiments" / "cartpole" / "source" / "seed_0" / "checkpoints" \
     / "episode_0024.pt"
-DEFAULT_OUTPUT = benchlib.ROOT / "docs" / "bench" / "sparse_bound.json"
+DEFAULT_OUTPUT = ROOT / "docs" / "bench" / "sparse_bound.json"
 SECTION = "bench_sparse_bound"
 
 
@@ -131,6 +139,14 @@ def measure(name: str, model: SparseDynamicsGP, repeats: int, fit: bool) -> dict
     return row
 
 
+def fit_cells(row: dict[str, Any]) -> list[str]:
+    """A row's fit columns: each path's CPU s, evaluations and objective, and their ratio (dashes without a fit)."""
+    if "fit_ratio" not in row:
+        return ["—", "—", "—"]
+    paths = [row["fit_gpytorch"], row["fit_closed_form"]]
+    return [*(f"{f['cpu_s']:.1f}, {f['evaluations']}, {f['objective']:.4f}" for f in paths), f"{row['fit_ratio']:.2f}×"]
+
+
 def markdown(rows: list[dict[str, Any]], info: dict[str, Any]) -> str:
     """The section of docs/benchmarks.md."""
     lines = [
@@ -148,22 +164,18 @@ def markdown(rows: list[dict[str, Any]], info: dict[str, Any]) -> str:
         "the same run. Max rel. diff: closed form against GPyTorch, value and gradient. Fit: one whole L-BFGS run "
         f"(at most {DEFAULT_MAX_ITER} iterations) from the same θ and Z by each path.",
         "",
-        "| case | n | m | GPyTorch (CPU s) | closed form (CPU s) | ratio | rel. diff: value, gradient "
-        "| fit: GPyTorch (CPU s, evals, objective) | fit: closed form | fit ratio |",
-        "| --- | ---: | ---: | ---: | ---: | ---: | --- | --- | --- | ---: |",
+        markdown_table([[r["case"], r["n"], r["inducing"], f"{r['gpytorch_s']:.3f}", f"{r['closed_form_s']:.3f}",
+                         f"{r['ratio']:.2f}×", f"{r['value_rel_diff']:.1e}, {r['grad_rel_diff']:.1e}", *fit_cells(r)]
+                        for r in rows],
+                       ["case", "n", "m", "GPyTorch (CPU s)", "closed form (CPU s)", "ratio",
+                        "rel. diff: value, gradient", "fit: GPyTorch (CPU s, evals, objective)", "fit: closed form",
+                        "fit ratio"], "lrrrrrlllr"),
     ]
-    for r in rows:
-        fit = ("| — | — | — |" if "fit_ratio" not in r else
-               "| {:.1f}, {}, {:.4f} | {:.1f}, {}, {:.4f} | {:.2f}× |".format(
-                   r["fit_gpytorch"]["cpu_s"], r["fit_gpytorch"]["evaluations"], r["fit_gpytorch"]["objective"],
-                   r["fit_closed_form"]["cpu_s"], r["fit_closed_form"]["evaluations"],
-                   r["fit_closed_form"]["objective"], r["fit_ratio"]))
-        lines.append(f"| {r['case']} | {r['n']} | {r['inducing']} | {r['gpytorch_s']:.3f} | {r['closed_form_s']:.3f} "
-                     f"| {r['ratio']:.2f}× | {r['value_rel_diff']:.1e}, {r['grad_rel_diff']:.1e} {fit}")
     return "\n".join(lines)
 
 
 def main() -> None:
+    """Time both paths on each case; write the JSON and (unless ``--no-docs``) the section."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", type=int, nargs="*", default=[400, 800, 1250, 2000])
     parser.add_argument("--checkpoint", default=str(DEFAULT_CHECKPOINT),
@@ -190,14 +202,14 @@ def main() -> None:
         rows.append(measure(name, make(), args.repeats, name in args.fit))
         print({k: v for k, v in rows[-1].items() if k != "times"}, file=sys.stderr, flush=True)
     output = args.output.resolve()
-    info = {"date": benchlib.today(), "command": benchlib.command_line(), "commit": benchlib.commit(),
-            "machine": benchlib.machine(), "threads": args.threads, "repeats": args.repeats, "seed": args.seed,
-            "checkpoint": None if checkpoint is None else benchlib.display_path(checkpoint.resolve()),
-            "load_before": load_before, "load_after": os.getloadavg()[0], "output": benchlib.display_path(output)}
-    benchlib.write_results(output, info, rows)
+    info = {"date": today(), "command": command_line(), "commit": commit(),
+            "machine": machine(), "threads": args.threads, "repeats": args.repeats, "seed": args.seed,
+            "checkpoint": None if checkpoint is None else display_path(checkpoint.resolve()),
+            "load_before": load_before, "load_after": os.getloadavg()[0], "output": display_path(output)}
+    write_results(output, info, rows)
     section = markdown(rows, info)
     if not args.no_docs:
-        benchlib.write_section(SECTION, section)
+        write_section(SECTION, section)
     print(section)
 
 

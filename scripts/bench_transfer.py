@@ -13,7 +13,7 @@ counts as the budget). Writes ``docs/bench/transfer.json`` and its table in ``do
 (another ``--mass``: ``transfer-m<mass>.json`` and a section of its own).
 
 The runs directory is laid out as an experiment directory (``target/<approach>/m<mass>/seed_<k>``, ``source``
-a link to the sources), so ``python scripts/report.py runs/bench_transfer`` writes the paper's Tables 1-3 and
+a link to the sources), so ``qtl-report runs/bench_transfer`` writes the paper's Tables 1-3 and
 Fig. 1 for it. Runs are deterministic and causal, so a finished run directory made by the same overrides is
 reused rather than recomputed, and an interrupted one is resumed; extra arguments are Hydra
 overrides for every target run.
@@ -31,12 +31,22 @@ import argparse
 import csv
 import json
 import statistics
-import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import benchlib
-
+from qtl.bench import (
+    ROOT,
+    command_line,
+    commit,
+    display_path,
+    first_successes,
+    machine,
+    markdown_table,
+    mean_std,
+    parse_with_overrides,
+    run_all,
+    today,
+    write_section,
+)
 from qtl.launch import ensure_run
 from qtl.metrics import Curve
 from qtl.recorder import TIMINGS_FILE
@@ -57,11 +67,11 @@ DEFAULT_MASS = 2.0  # kg, the paper's headline target
 
 
 def link_experiment(runs_dir: Path, sources: Path) -> None:
-    """Make ``runs_dir`` an experiment directory that ``scripts/report.py`` reads: ``source`` links to the sources."""
+    """Make ``runs_dir`` an experiment directory that ``qtl-report`` reads: ``source`` links to the sources."""
     link = runs_dir / SOURCE_DIR
     if not link.exists():
         link.symlink_to(sources.resolve(), target_is_directory=True)
-    ExperimentRecord(name="cartpole transfer benchmark", commands=[benchlib.command_line()]).write(runs_dir)
+    ExperimentRecord(name="cartpole transfer benchmark", commands=[command_line()]).write(runs_dir)
 
 
 def result_names(mass: float, tag: str = "") -> tuple[str, str]:
@@ -71,22 +81,23 @@ def result_names(mass: float, tag: str = "") -> tuple[str, str]:
 
 
 def main() -> None:
+    """Make the sources, then every approach's target runs; judge the requirement, write the JSON and the section."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
     parser.add_argument("--episodes", type=int, default=9, help="learned episodes per target run (after 1 initial)")
     parser.add_argument("--mass", type=float, default=DEFAULT_MASS, help="target pole mass (kg)")
     parser.add_argument("--approaches", nargs="+", default=DEFAULT_APPROACHES, choices=[*APPROACHES, "all"])
     parser.add_argument("--jobs", type=int, default=2, help="runs in parallel (one torch thread each)")
-    parser.add_argument("--sources", type=Path, default=benchlib.ROOT / "runs" / "bench_cartpole" / "cartpole")
+    parser.add_argument("--sources", type=Path, default=ROOT / "runs" / "bench_cartpole" / "cartpole")
     parser.add_argument("--runs-dir", type=Path, help="default: runs/bench_transfer[-<tag>]")
     parser.add_argument("--source-episodes", type=int, default=SOURCE_EPISODES,
                         help="learned episodes of a source run (bench_cartpole's --within − 1)")
     parser.add_argument("--source-overrides", nargs="*", default=[],
                         help="Hydra overrides of the source runs, as bench_cartpole made them (e.g. recipe=mc_pilco)")
     parser.add_argument("--tag", default="", help="names the result files, section and runs directory (e.g. particles)")
-    args, overrides = benchlib.parse_with_overrides(parser)
+    args, overrides = parse_with_overrides(parser)
     if args.runs_dir is None:
-        args.runs_dir = benchlib.ROOT / "runs" / ("bench_transfer" + (f"-{args.tag}" if args.tag else ""))
+        args.runs_dir = ROOT / "runs" / ("bench_transfer" + (f"-{args.tag}" if args.tag else ""))
     approaches = [slug for slug in APPROACHES if slug in args.approaches or "all" in args.approaches]
 
     def source(seed: int) -> Path:
@@ -109,8 +120,8 @@ def main() -> None:
 
     jobs = [(slug, seed) for seed in args.seeds for slug in approaches]  # seed-major: partial results pair up
     if any(slug != DEFAULT_APPROACH for slug in approaches):
-        benchlib.run_all(make_source, args.seeds, args.jobs)  # sources first: every QTL run of a seed reads its own
-    walls = {(slug, seed): wall for slug, seed, wall in benchlib.run_all(target, jobs, args.jobs)}
+        run_all(make_source, args.seeds, args.jobs)  # sources first: every QTL run of a seed reads its own
+    walls = {(slug, seed): wall for slug, seed, wall in run_all(target, jobs, args.jobs)}
 
     link_experiment(args.runs_dir, args.sources)
     budget = args.episodes + 1
@@ -122,7 +133,7 @@ def main() -> None:
             curve = Curve.read(run_dir, budget)
             with open(run_dir / TIMINGS_FILE, newline="") as f:
                 search = [float(t["policy_search_s"]) for t in csv.DictReader(f)][1:budget]
-            per_seed.append({"seed": seed, "run_dir": benchlib.display_path(run_dir), "returns": curve.returns,
+            per_seed.append({"seed": seed, "run_dir": display_path(run_dir), "returns": curve.returns,
                              "policy_search_s_per_episode": statistics.mean(search),
                              "successes": [int(s) for s in curve.successes], "compliance": curve.compliance,
                              "wall_s_this_call": walls[(slug, seed)], **curve.summary()})
@@ -136,13 +147,13 @@ def main() -> None:
     passed = {name: r["median_episodes_to_success"] < pilco for name, r in results.items()
               if name.startswith("QTL") and pilco is not None} if judged else {}
 
-    info = {"date": benchlib.today(), "commit": benchlib.commit(), "command": benchlib.command_line(),
-            "machine": benchlib.machine(), "overrides": overrides, "episodes_per_run": budget,
-            "target_pole_mass": args.mass, "sources": benchlib.display_path(args.sources),
+    info = {"date": today(), "commit": commit(), "command": command_line(),
+            "machine": machine(), "overrides": overrides, "episodes_per_run": budget,
+            "target_pole_mass": args.mass, "sources": display_path(args.sources),
             "required": "QTL median episodes to success < PILCO's", "passed": passed,
             "results": results}
     json_name, section = result_names(args.mass, args.tag)
-    out = benchlib.ROOT / "docs" / "bench" / json_name
+    out = ROOT / "docs" / "bench" / json_name
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(info, indent=2) + "\n")
 
@@ -166,25 +177,25 @@ def main() -> None:
         f"A run that never succeeds counts as {budget} episodes (the budget) in the median: the median is then a lower "
         "bound. Compliance is Λ of Eq. 14 for the tuples of the last learned episode's model (QTL runs only).",
         "",
-        "| approach | first success per seed | median episodes to success | solved | AUC | final performance "
-        "| time to convergence | compliance (last episode) | policy search (s/episode) |",
-        "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
     ]
+    rows = []
     for name, r in results.items():
         seeds = r["per_seed"]
-        firsts, stats = benchlib.first_successes(seeds), benchlib.mean_std
         compliance = [s["compliance"][-1] for s in seeds if s["compliance"][-1] == s["compliance"][-1]]
-        lines.append(
-            f"| {name} | {firsts} | {r['median_episodes_to_success']:g} | {r['solved']}/{len(seeds)} | "
-            f"{stats([s['auc'] for s in seeds])} | {stats([s['final_performance'] for s in seeds])} | "
-            f"{stats([s['time_to_convergence'] for s in seeds])} | {stats(compliance, 2) if compliance else '—'} | "
-            f"{stats([s['policy_search_s_per_episode'] for s in seeds])} |"
-        )
+        rows.append([name, first_successes(seeds), f"{r['median_episodes_to_success']:g}",
+                     f"{r['solved']}/{len(seeds)}", mean_std([s["auc"] for s in seeds]),
+                     mean_std([s["final_performance"] for s in seeds]),
+                     mean_std([s["time_to_convergence"] for s in seeds]),
+                     mean_std(compliance, 2) if compliance else "—",
+                     mean_std([s["policy_search_s_per_episode"] for s in seeds])])
+    lines.append(markdown_table(rows, ["approach", "first success per seed", "median episodes to success", "solved",
+                                       "AUC", "final performance", "time to convergence", "compliance (last episode)",
+                                       "policy search (s/episode)"], "llrrrrrrr"))
     lines += ["", "Returns per episode (seed: curve):", ""]
     for name, r in results.items():
         for s in r["per_seed"]:
             lines.append(f"- {name}, seed {s['seed']}: " + " ".join(f"{v:.1f}" for v in s["returns"]))
-    benchlib.write_section(section, "\n".join(lines))
+    write_section(section, "\n".join(lines))
     print("\n".join(lines))
 
 

@@ -7,11 +7,11 @@ loaded and makes it the member it is once installed, so that ``::: qtl.envs.cart
 
 from __future__ import annotations
 
-import tomllib
 from pathlib import Path
 from typing import Any
 
 import griffe
+import tomllib
 
 ROOT = Path(__file__).resolve().parents[1]
 

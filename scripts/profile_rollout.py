@@ -20,28 +20,17 @@ import statistics
 import sys
 import time
 from collections.abc import Callable
-from pathlib import Path
 
 import torch
 from torch.profiler import ProfilerActivity, profile
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import bench_policy_search as bps  # the benchmark's model and config, shared
-import bench_scale  # the full-scale presets' stage model
-import benchlib
-
+from qtl.bench import markdown_table, model_label, parse_with_overrides
+from qtl.bench.scale import compose_stage, model_facts, stage_model
+from qtl.bench.search import CACHE_DIR, batched_round, compose_config, ensure_model, rollout_and_gradient
 from qtl.build import build
 from qtl.models import DynamicsGP
 
 WARMUPS, REPEATS = 2, 7
-
-
-def rollout_and_gradient(propagator, parts) -> float:
-    """One V = Σ E[r(x_t)] and its ∂V/∂ψ (the objective of one search evaluation); returns V."""
-    propagator.policy.zero_grad()
-    value = propagator.expected_return(parts.start, parts.task.horizon)
-    value.backward()
-    return value.item()
 
 
 def profile_call(call: Callable[[], float | None], heading: str, rows: int) -> str:
@@ -64,33 +53,32 @@ def profile_call(call: Callable[[], float | None], heading: str, rows: int) -> s
         f"Rollout + gradient: median {statistics.median(times):.3f} s of {REPEATS}{shown}; "
         f"profiled: {sum(e.count for e in events)} operations, {total / 1e3:.1f} ms self CPU (profiler included).",
         "",
-        "| operation | calls | self CPU (ms) | share |",
-        "| --- | ---: | ---: | ---: |",
+        markdown_table([[event.key, event.count, f"{event.self_cpu_time_total / 1e3:.1f}",
+                         f"{event.self_cpu_time_total / total:.0%}"]
+                        for event in sorted(events, key=lambda e: e.self_cpu_time_total, reverse=True)[:rows]],
+                       ["operation", "calls", "self CPU (ms)", "share"], "lrrr"),
     ]
-    for event in sorted(events, key=lambda e: e.self_cpu_time_total, reverse=True)[:rows]:
-        share = event.self_cpu_time_total / total
-        lines.append(f"| {event.key} | {event.count} | {event.self_cpu_time_total / 1e3:.1f} | {share:.0%} |")
     return "\n".join(lines)
 
 
 def profile_setting(backend: str, moments: str, n: int, rows: int) -> str:
     """The timing and profile table of one ``kernels`` setting, as Markdown."""
-    cfg = bps.compose_config("moment_matching", "float64", [f"kernels.backend={backend}", f"kernels.moments={moments}"])
-    path, _ = bps.ensure_model(cfg, n, 0, bps.CACHE_DIR)
+    cfg = compose_config("moment_matching", "float64", [f"kernels.backend={backend}", f"kernels.moments={moments}"])
+    path, _ = ensure_model(cfg, n, 0, CACHE_DIR)
     parts = build(cfg)
     model = DynamicsGP.load(path, dtype=parts.dtype, device=parts.device)
     propagator = parts.make_propagator(model, parts.initial_policy(), parts.reward, angle_dims=parts.task.angle_dims)
-    return profile_call(lambda: rollout_and_gradient(propagator, parts),
+    return profile_call(lambda: rollout_and_gradient(propagator, parts.start, parts.task.horizon),
                         f"### kernels.backend={backend} kernels.moments={moments}, n = {n}", rows)
 
 
 def profile_experiment(preset: str, overrides: list[str], rows: int, seed: int = 0) -> str:
     """The timing and profile table of one search round of a full-scale preset's stage, as Markdown."""
-    cfg = bench_scale.compose_stage(preset, overrides)
-    parts, model, n, _ = bench_scale.stage_model(cfg, seed)
-    round_, restarts = bps.batched_round(parts, model, parts.initial_policy(), seed)
+    cfg = compose_stage(preset, overrides)
+    parts, model, n, _ = stage_model(cfg, seed)
+    round_, restarts = batched_round(parts, model, parts.initial_policy(), seed)
     heading = (f"### experiment={preset}: one search round, R = {restarts}, H = {parts.task.horizon}, n = {n}, "
-               f"{benchlib.model_label(bench_scale.model_facts(model))}")
+               f"{model_label(model_facts(model))}")
     return profile_call(round_, heading, rows)
 
 
@@ -104,7 +92,7 @@ def main() -> None:
                         metavar="BACKEND/MOMENTS", help="kernels.backend/kernels.moments settings to profile")
     parser.add_argument("--experiment", metavar="PRESET",
                         help="profile one search round of this full-scale preset (e.g. aircraft_source) instead")
-    args, overrides = benchlib.parse_with_overrides(parser)
+    args, overrides = parse_with_overrides(parser)
     settings = [tuple(k.split("/")) for k in args.kernels]
     if any(len(s) != 2 for s in settings):
         parser.error("--kernels takes BACKEND/MOMENTS pairs, e.g. native/native")

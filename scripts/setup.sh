@@ -2,16 +2,19 @@
 # Set up (or reuse) the project's virtual environment in .venv: torch==2.13.0 (CPU) first, then
 # qtl with its dev extras, then qtl's native kernels into the per-user cache (gcc; optional). Idempotent:
 # a second run installs and compiles nothing when nothing changed.
-#   --mujoco  also the `mujoco` extra (gymnasium's MuJoCo envs, task=inverted_pendulum); a later run
-#             without it keeps what is installed.
+#   --mujoco     also the `mujoco` extra (gymnasium's MuJoCo envs, task=inverted_pendulum);
+#   --launchers  also the `ray` and `slurm` extras (hydra/launcher=ray|slurm|slurm_local; tests/test_launchers.py).
+# A later run without a flag keeps what is installed.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
 mujoco=0
+launchers=0
 for arg in "$@"; do
   case "$arg" in
     --mujoco) mujoco=1 ;;
-    *) echo "usage: bash scripts/setup.sh [--mujoco]" >&2; exit 2 ;;
+    --launchers) launchers=1 ;;
+    *) echo "usage: bash scripts/setup.sh [--mujoco] [--launchers]" >&2; exit 2 ;;
   esac
 done
 
@@ -28,17 +31,22 @@ if ! .venv/bin/python -c 'import sys, torch; sys.exit(torch.__version__.split("+
   "${pip[@]}" install torch==2.13.0
 fi
 
-# The project itself, editable, reinstalled only when pyproject.toml changed (or --mujoco asks for
-# an extra that does not import yet).
+# The project itself, editable, reinstalled only when pyproject.toml changed (or a flag asks for an extra that
+# does not import yet).
 stamp=.venv/.qtl-installed
 want=$(sha256sum pyproject.toml | cut -d' ' -f1)
 extras=dev
-missing_mujoco=0
+missing_extra=0
 if [ "$mujoco" = 1 ]; then
-  extras=dev,mujoco
-  .venv/bin/python -c 'import mujoco' 2>/dev/null || missing_mujoco=1
+  extras=$extras,mujoco
+  .venv/bin/python -c 'import mujoco' 2>/dev/null || missing_extra=1
 fi
-if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ] || [ "$missing_mujoco" = 1 ] \
+if [ "$launchers" = 1 ]; then
+  extras=$extras,ray,slurm
+  .venv/bin/python -c 'import hydra_plugins.hydra_ray_launcher, hydra_plugins.hydra_submitit_launcher' 2>/dev/null \
+    || missing_extra=1
+fi
+if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ] || [ "$missing_extra" = 1 ] \
     || ! .venv/bin/python -c 'import qtl, qtl.envs' 2>/dev/null; then
   "${pip[@]}" install -e ".[$extras]"
   echo "$want" > "$stamp"

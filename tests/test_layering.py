@@ -35,9 +35,10 @@ LAYERS: list[tuple[str, set[str]]] = [
     ("propagation", {"qtl.propagation"}),
     ("checkpoint files", {"qtl.checkpoint"}),
     ("transfer", {"qtl.transfer"}),
-    ("record", {"qtl.recorder", "qtl.metrics", "qtl.hparams", "qtl.report"}),
-    ("algorithm", {"qtl.loop", "qtl.run_state", "qtl.build", "qtl.episodes", "qtl.config", "qtl.runs"}),
-    ("top", {"qtl.train", "qtl.demo", "qtl.launch", "qtl.__main__"}),
+    ("record", {"qtl.recorder", "qtl.metrics", "qtl.hparams", "qtl.report", "qtl.video"}),
+    ("algorithm", {"qtl.loop", "qtl.run_state", "qtl.build", "qtl.episodes", "qtl.config", "qtl.runs", "qtl.frames"}),
+    ("top", {"qtl.train", "qtl.demo", "qtl.launch", "qtl.__main__", "qtl.pipeline", "qtl.bench", "qtl.play",
+             "qtl.exported_policy"}),
 ]
 RANK = {unit: rank for rank, (_, units) in enumerate(LAYERS) for unit in units}
 TOP = len(LAYERS) - 1

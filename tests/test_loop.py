@@ -255,7 +255,7 @@ def test_episodes_that_end_too_early_for_a_model_are_followed_by_more_initial_ep
     cfg = tiny_config("episodes=3")
     cfg.task = OmegaConf.merge(OmegaConf.structured(TaskConfig), spinner_task(
         env={"id": register_spinner(), "track": 0.01}, horizon=12, policy_size=5))
-    with caplog.at_level("WARNING", logger="qtl.loop"):
+    with caplog.at_level("INFO", logger="qtl.loop"):
         run(cfg, tmp_path)
     rows = read_csv(tmp_path / "metrics.csv")
     lengths = [int(r["length"]) for r in rows]

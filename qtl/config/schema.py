@@ -230,13 +230,13 @@ class KernelsConfig:
     backend: str = field(
         default="auto",
         metadata=doc("torch | auto | native: the fused exp sums of moment matching (native: C, CPU float64; "
-                     "auto: native when built, else torch)"),
+                     "auto: native where it compiles, else torch)"),
     )
     moments: str = field(
         default="auto",
         metadata=doc("reference | fused | native | auto: the moment-matching maths (fused: ~45% fewer torch "
                      "ops per step, the same moments to ~1e-13; native: fused with its hot pieces compiled, "
-                     "needs the native build; auto: native when built, else fused; round-off differs, so "
+                     "needs the native build; auto: native where it compiles, else fused; round-off differs, so "
                      "metrics.csv is per formulation)"),
     )
 
@@ -276,6 +276,10 @@ class TrainConfig:
     )
     figure_every: int = field(
         default=3, metadata=doc("predicted-vs-real figure every this many learned episodes (0: never)"),
+    )
+    video: bool = field(
+        default=True,
+        metadata=doc("with each predicted-vs-real figure, the episode rendered as a TensorBoard video (rollout/video)"),
     )
     keep_checkpoints: int = field(
         default=0, metadata=doc("keep only the newest this many episode checkpoints (0: all; resume needs 1)"),

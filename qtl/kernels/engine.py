@@ -69,9 +69,9 @@ class Engine:
         """What a run's log says of its kernels: ``native (<library path>)`` when compiled code runs, else ``torch``."""
         if "native" not in (self.exp_sums, self.moments):
             return "torch"
-        from qtl.kernels.native.first_use import library_path  # the compiled kernels sit below the engine's choice
+        from qtl.kernels.native.artefact import artefact_path  # where the resolved engine's library is (built by now)
 
-        return f"native ({library_path()})"
+        return f"native ({artefact_path()})"
 
     def replace(self, **changes: str | bool) -> Engine:
         """This engine with ``changes`` (field names as keywords)."""

@@ -1,6 +1,6 @@
 """The helicopter's reference line (Section 5.3, Fig. 3): the autopilot's total reward, recorded with the experiment.
 
-The experiment driver (``scripts/run_experiment.py``) flies the autopilot once its runs exist and
+The experiment driver (``qtl-experiment``, :mod:`qtl.pipeline.experiment`) flies the autopilot once its runs exist and
 stores the result in ``experiment.yaml`` (``reference: {name: autopilot, return: ...}``); the report
 only reads it.
 """

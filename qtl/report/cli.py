@@ -3,13 +3,13 @@
 Reads ``<root>/source/seed_<k>/`` and ``<root>/target/<approach>/<label>/seed_<k>/`` (and
 ``<root>/experiment.yaml`` when present) and writes ``report.md``, ``tables.json`` and
 ``fig_learning_curves.png/.pdf`` into ``--out`` (default ``<root>/report``); see :mod:`qtl.report`.
-The helicopter's autopilot line is read from ``experiment.yaml``, where ``scripts/run_experiment.py``
+The helicopter's autopilot line is read from ``experiment.yaml``, where ``qtl-experiment``
 records it; ``--record-reference`` flies the autopilot and records it first (for runs made another way).
 ``--export DIR`` writes no report: it copies the small files the report is rebuilt from (configs, CSVs,
 ``experiment.yaml``, ``final_policies.json``, the report) into a new folder, without checkpoints, events or logs
 (:mod:`qtl.report.export`).
 
-    qtl-report runs/cartpole                   # or: python scripts/report.py runs/cartpole
+    qtl-report runs/cartpole                   # or: python -m qtl.report.cli runs/cartpole
     qtl-report runs/cartpole --finished-only   # mid-sweep: the finished runs only
     qtl-report runs/aircraft --out docs/aircraft
     qtl-report runs/aircraft --record-reference
@@ -29,8 +29,8 @@ from qtl.report.write import write_report
 
 
 def parser() -> argparse.ArgumentParser:
-    """The command line of ``qtl-report`` (and ``scripts/report.py``)."""
-    found = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    """The command line of ``qtl-report`` (and ``python -m qtl.report.cli``)."""
+    found = argparse.ArgumentParser(prog="qtl-report", description=__doc__.splitlines()[0])
     found.add_argument("root", type=Path, help="the experiment directory")
     found.add_argument("--out", type=Path, default=None, help="where the report goes (default: <root>/report)")
     found.add_argument("--record-reference", action="store_true",

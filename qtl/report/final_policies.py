@@ -1,7 +1,7 @@
 """Final policies from the same K start states (not in the paper): ``final_policies.json`` beside the runs.
 
-Table 1 averages a run's last 3 episodes, 3 start states per seed; ``scripts/evaluate_policies.py`` runs each
-run's last policy from K start states shared by every run and writes what it found to
+Table 1 averages a run's last 3 episodes, 3 start states per seed; ``qtl-evaluate`` (:mod:`qtl.pipeline.evaluate`)
+runs each run's last policy from K start states shared by every run and writes what it found to
 ``<root>/final_policies.json``. The report reads it back here, keeping only evaluations of each run's last
 episode: a run that has gone on since it was evaluated is named, not counted.
 """
@@ -21,7 +21,7 @@ from qtl.report.tables import REWARD_DIGITS, approach_grid, stat_text
 
 FINAL_POLICIES_FILE = "final_policies.json"
 SOURCE = "source"  # the approach and label of a source run in ``final_policies.json``
-EVALUATE_COMMAND = "python scripts/evaluate_policies.py {root} --finished-only"
+EVALUATE_COMMAND = "qtl-evaluate {root} --finished-only"
 FINAL_METRICS: dict[str, str] = {
     "success_rate": "**Table F1.** Final policies: the share of the {starts} start states from which the run's last "
                     "policy passes the success test, in %; mean ± std over seeds.",
@@ -56,7 +56,7 @@ def read_final_policies(experiment: Experiment, path: Path | None = None) -> Fin
                   (int(r["episode"]), {metric: float(r[metric]) for metric in FINAL_METRICS}) for r in numbers["runs"]}
     except (ValueError, KeyError, TypeError) as err:
         command = EVALUATE_COMMAND.format(root=recorded_path(experiment.root))
-        raise ValueError(f"{path} is not what scripts/evaluate_policies.py writes ({type(err).__name__}: {err}); "
+        raise ValueError(f"{path} is not what qtl-evaluate writes ({type(err).__name__}: {err}); "
                          f"move it away or rerun `{command}`") from err
     rows, source_rows, stale = [], [], []
 

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 
 import pandas as pd
 
@@ -42,10 +42,23 @@ def stat_text(mean: float, std: float, digits: int, whole: bool = False) -> str:
     return f"{mean:.{digits}f}{PLUS_MINUS}{std:.{digits}f}"
 
 
-def markdown(frame: pd.DataFrame, text_columns: int = 1) -> str:
-    """A markdown table of ``frame``'s text cells, its first ``text_columns`` columns left-aligned, the others right."""
-    align = ["left"] * text_columns + ["right"] * (frame.shape[1] - text_columns)
-    return frame.to_markdown(index=False, colalign=align, disable_numparse=True)
+ALIGNMENTS = {"l": "left", "r": "right", "c": "center"}
+
+
+def markdown(frame: pd.DataFrame, text_columns: int = 1, align: str | None = None) -> str:
+    """A markdown table of ``frame``'s text cells: ``align`` one letter a column (``l``, ``r`` or ``c``), by default
+    its first ``text_columns`` columns left-aligned and the others right. Every table of qtl is written here."""
+    letters = align if align is not None else "l" * text_columns + "r" * (frame.shape[1] - text_columns)
+    if len(letters) != frame.shape[1] or set(letters) - set(ALIGNMENTS):
+        raise ValueError(f"align {letters!r}: give one of {'/'.join(ALIGNMENTS)} for each of {frame.shape[1]} columns")
+    return frame.to_markdown(index=False, colalign=[ALIGNMENTS[a] for a in letters], disable_numparse=True)
+
+
+def markdown_table(rows: Iterable[Sequence[object]], columns: Sequence[str], align: str | None = None) -> str:
+    """A markdown table of ``rows`` under ``columns``, each cell as ``str`` writes it; ``align`` as :func:`markdown`'s
+    (by default the first column left, the others right)."""
+    frame = pd.DataFrame([[str(cell) for cell in row] for row in rows], columns=list(columns))
+    return markdown(frame, align=align)
 
 
 def seed_counts(counts: Sequence[int]) -> str:

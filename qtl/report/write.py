@@ -49,8 +49,8 @@ REPORT_DIR = "report"
 REPORT_FILE = "report.md"
 TABLES_FILE = "tables.json"
 TRAIN_COMMAND = "qtl-train"
-RECORD_HINT = ("record it with `python scripts/report.py {root} --record-reference` (or rerun "
-               "`python scripts/run_experiment.py aircraft ...`, which reuses the finished runs)")
+RECORD_HINT = ("record it with `qtl-report {root} --record-reference` (or rerun "
+               "`qtl-experiment aircraft ...`, which reuses the finished runs)")
 
 def tables_json(experiment: Experiment, final: FinalPolicies | None) -> dict[str, object]:
     """The numbers of Tables 1-6 (and of F1-F2 from ``final``, where evaluated) and of the runs behind them, for
@@ -174,7 +174,7 @@ def write_report(root: str | Path, out_dir: str | Path | None = None, *, finishe
     ``out_dir`` defaults to ``<root>/report``. The autopilot line is read from ``experiment.yaml``, never computed
     here. ``finished_only``: leave out (and name) the runs with fewer episodes than configured. Raises ValueError
     when ``root`` has no target runs (none finished, with ``finished_only``) or a ``final_policies.json`` that
-    ``scripts/evaluate_policies.py`` did not write, before anything is written.
+    ``qtl-evaluate`` did not write, before anything is written.
     """
     experiment = discover(root, finished_only=finished_only)
     final = read_final_policies(experiment)  # read once; a file it cannot read fails here, before anything is written

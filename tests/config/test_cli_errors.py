@@ -62,3 +62,14 @@ def test_a_wrong_type_in_a_task_yaml_fails_in_one_line_that_says_where_and_why(t
     assert done.returncode == 1 and message in done.stderr, done.stderr
     assert done.stderr.strip().count("\n") == 0 and "Traceback" not in done.stderr
     assert not (tmp_path / "run" / "metrics.csv").exists() and not (tmp_path / "run" / "checkpoints").exists()
+
+
+def test_a_gpu_that_is_not_there_is_one_line_before_any_work(tmp_path):
+    """``device=cuda:99``: no machine of ours has it (none at all on a CPU machine); one line, no run directory."""
+    environ = {k: v for k, v in os.environ.items() if k != "HYDRA_FULL_ERROR"}
+    done = subprocess.run([sys.executable, "-m", "qtl", *TINY, "device=cuda:99", f"hydra.run.dir={tmp_path / 'run'}"],
+                          cwd=tmp_path, capture_output=True, text=True, timeout=300, env=environ)
+    assert done.returncode == 1 and "Traceback" not in done.stderr, done.stderr
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("qtl-train: device='cuda:99', but "), done.stderr
+    assert "use device=cpu" in lines[0] and not (tmp_path / "run" / "metrics.csv").exists()

@@ -70,8 +70,9 @@ def test_cartpole_transfer_runs_source_and_both_targets_and_plots_the_targets(tm
     assert pixels.shape == (400, 700, 4)
     for colour in ((0xD6, 0x27, 0x28), (0x1F, 0x77, 0xB4)):  # QTL's red, PILCO's blue
         assert (np.abs(pixels[..., :3] * 255 - colour).max(-1) < 2).sum() > 100, colour
-    table = [line.split("|")[1].strip() for line in out.splitlines() if line.startswith("| ")][2:]
-    assert table == ["source 0.5 kg, PILCO", "target 2.0 kg, QTL-PILCO, Bayesian (θ_s, ψ_s)",
+    rows = [line for line in out.splitlines() if line.startswith("|") and not set(line) <= set("|:- ")]
+    table = [line.split("|")[1].strip() for line in rows]
+    assert table == ["run", "source 0.5 kg, PILCO", "target 2.0 kg, QTL-PILCO, Bayesian (θ_s, ψ_s)",
                      "target 2.0 kg, PILCO from scratch"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["transfer"]  # everything under --out
 

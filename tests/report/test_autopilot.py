@@ -7,7 +7,6 @@ import logging
 import math
 import subprocess
 import sys
-from pathlib import Path
 
 import pytest
 import yaml
@@ -15,7 +14,6 @@ import yaml
 from qtl.report import ExperimentRecord, autopilot_return, record_reference, write_report
 from tests.report.fakes import CARTPOLE, make_experiment, make_helicopter, table_rows
 
-REPO = Path(__file__).resolve().parents[2]
 COMMAND = "qtl-train -m +experiment=aircraft seed=0,1,2,3,4"
 
 
@@ -90,7 +88,7 @@ def test_a_missing_line_is_reported_not_computed(tmp_path, monkeypatch, caplog):
 
 def test_cli_records_the_line_when_asked(tmp_path, mass_6_return):
     root = make_helicopter(tmp_path / "aircraft")  # no experiment.yaml: the helicopter label decides
-    done = subprocess.run([sys.executable, str(REPO / "scripts" / "report.py"), str(root), "--record-reference"],
+    done = subprocess.run([sys.executable, "-m", "qtl.report.cli", str(root), "--record-reference"],
                           capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
     line = json.loads((root / "report" / "tables.json").read_text())["reference"]

@@ -67,7 +67,7 @@ def test_report_holds_tables_f1_f2_and_names_the_stale_runs(root: Path) -> None:
     report = write_report(root).read_text()
     section = report.split("## Final policies (not in the paper)")[1].split("\n## ")[0]
     assert f"same {STARTS} start states (drawn with seed {EVAL_SEED}" in section
-    assert f"python scripts/evaluate_policies.py {root} --finished-only" in section
+    assert f"qtl-evaluate {root} --finished-only" in section
     f1, f2 = section.split("**Table F1.**")[1].split("**Table F2.**")
     # Columns m1.5, m2.0; seeds evaluated per cell. PILCO m1.5: seed 0's 100 % (seed 1 stale); m2.0: 25 and
     # 75 % -> 50 ± 35 %. QTL Bayesian m1.5: 50 and 100 % -> 75 ± 35 %; m2.0: seed 0's 0 % (seed 1 not evaluated).
@@ -91,10 +91,10 @@ def test_without_evaluations_the_report_has_no_such_section(tmp_path: Path) -> N
                                   '{"starts": 4, "eval_seed": 1, "runs": [{}]}',
                                   '{"starts": 4, "eval_seed": 1, "runs": [{"approach": "pilco", "label": "m1.5", '
                                   '"seed": 0, "episode": 5, "success_rate": 1.0}]}'])
-def test_a_file_that_is_not_the_scripts_output_is_refused_in_one_line(tmp_path: Path, text: str) -> None:
+def test_a_file_that_is_not_the_commands_output_is_refused_in_one_line(tmp_path: Path, text: str) -> None:
     root = make_experiment(tmp_path / "cartpole", CARTPOLE)
     (root / FINAL_POLICIES_FILE).write_text(text)
-    with pytest.raises(ValueError, match=r"final_policies.json is not what scripts/evaluate_policies.py writes .*"
-                                         r"rerun `python scripts/evaluate_policies.py .* --finished-only`") as err:
+    with pytest.raises(ValueError, match=r"final_policies.json is not what qtl-evaluate writes .*"
+                                         r"rerun `qtl-evaluate .* --finished-only`") as err:
         write_report(root)
     assert "\n" not in str(err.value)

@@ -5,8 +5,9 @@ from __future__ import annotations
 import math
 
 import pandas as pd
+import pytest
 
-from qtl.report.tables import markdown, seed_counts, stat_text
+from qtl.report.tables import markdown, markdown_table, seed_counts, stat_text
 from tests.report.fakes import table_rows
 
 
@@ -29,3 +30,18 @@ def test_markdown_keeps_text_cells_and_aligns_numbers_right():
 def test_seed_counts_collapse_when_equal():
     assert seed_counts([5, 5, 5]) == "5"
     assert seed_counts([5, 3]) == "5, 3"
+
+
+def test_markdown_table_writes_each_cell_as_str_aligned_by_letter():
+    text = markdown_table([["PILCO", 3, 0.5], ["QTL", None, "—"]], ["approach", "n", "x"], "lrl")
+    assert table_rows(text) == [("approach", "n", "x"), ("PILCO", "3", "0.5"), ("QTL", "None", "—")]
+    rule = text.splitlines()[1].strip("|").split("|")
+    assert rule[0].startswith(":") and rule[1].endswith(":") and not rule[2].endswith(":")
+    assert table_rows(markdown_table([["a", "b"]], ["x", "y"])) == [("x", "y"), ("a", "b")]  # default: l, then r
+
+
+def test_markdown_refuses_an_alignment_that_does_not_fit_the_columns():
+    frame = pd.DataFrame({"a": ["1"], "b": ["2"]})
+    for align in ("l", "lx", "lrr"):
+        with pytest.raises(ValueError, match="give one of l/r/c for each of 2 columns"):
+            markdown(frame, align=align)

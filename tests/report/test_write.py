@@ -5,13 +5,10 @@ from __future__ import annotations
 import math
 import subprocess
 import sys
-from pathlib import Path
 
 import pytest
 
 from tests.report.fakes import CARTPOLE, make_experiment, table_rows
-
-REPO = Path(__file__).resolve().parents[2]
 
 
 def test_tables_json_holds_the_hand_computed_numbers(cartpole):
@@ -89,8 +86,8 @@ def test_report_markdown_has_the_table_cells(cartpole):
 
 def test_cli_prints_the_report_path(tmp_path):
     root = make_experiment(tmp_path / "exp", {"pilco": {"m1.5": CARTPOLE["pilco"]["m1.5"]}}, sources=0)
-    done = subprocess.run([sys.executable, str(REPO / "scripts" / "report.py"), str(root), "--out",
-                           str(tmp_path / "out")], capture_output=True, text=True, timeout=120)
+    done = subprocess.run([sys.executable, "-m", "qtl.report.cli", str(root), "--out", str(tmp_path / "out")],
+                          capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
     assert done.stdout.strip() == str(tmp_path / "out" / "report.md")
     assert ("PILCO (γ = 0)", "33.00 ± 4.24", "2") in table_rows((tmp_path / "out" / "report.md").read_text())
@@ -99,8 +96,8 @@ def test_cli_prints_the_report_path(tmp_path):
 def test_cli_refuses_an_unreadable_final_policies_file_in_one_line_writing_nothing(tmp_path):
     root = make_experiment(tmp_path / "exp", {"pilco": {"m1.5": CARTPOLE["pilco"]["m1.5"]}}, sources=0)
     (root / "final_policies.json").write_text("{}")
-    done = subprocess.run([sys.executable, str(REPO / "scripts" / "report.py"), str(root)], capture_output=True,
-                          text=True, timeout=120)
-    assert done.returncode == 1 and done.stdout == ""
-    assert done.stderr.count("\n") == 1 and "is not what scripts/evaluate_policies.py writes" in done.stderr
+    done = subprocess.run([sys.executable, "-m", "qtl.report.cli", str(root)], capture_output=True, text=True,
+                          timeout=120)
+    assert done.returncode == 1 and done.stdout == "" and done.stderr.startswith("qtl-report: ")
+    assert done.stderr.count("\n") == 1 and "is not what qtl-evaluate writes" in done.stderr
     assert not (root / "report").exists()

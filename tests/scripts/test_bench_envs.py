@@ -3,15 +3,15 @@
 from __future__ import annotations
 
 import csv
-import sys
 from pathlib import Path
 
 import yaml
 
 from qtl.recorder import METRICS_FILE, TIMINGS_FILE
+from tests.report.fakes import table_rows
+from tests.scripts.load import script
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "scripts"))
-import bench_envs
+bench_envs = script("bench_envs")
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -60,7 +60,7 @@ def test_results_of_examples_not_run_now_are_kept_and_the_table_judges_each():
     assert [s.splitlines()[0] for s in sections] == list(merged["envs"])
     assert "— met (2 of 3 seeds succeeded)" in sections[0]
     assert "not judged" in sections[1] and "— NOT met (1 of 3 seeds succeeded)" in sections[2]
-    assert "| 1 | — | 0.0 1.5 | 40 18 | 95.3 | 12 | reused |" in sections[0]
+    assert ("1", "—", "0.0 1.5", "40 18", "95.3", "12", "reused") in table_rows(sections[0])
     assert "<= 0.05 for the last 1 of 40 steps, each step 5 env steps" in sections[0]
 
 

@@ -10,8 +10,10 @@ from pathlib import Path
 
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "scripts"))
-import bench_scale
+from tests.report.fakes import table_rows
+from tests.scripts.load import script
+
+bench_scale = script("bench_scale")
 
 ROOT = Path(__file__).resolve().parents[2]
 SCRIPT = ROOT / "scripts" / "bench_scale.py"
@@ -64,7 +66,7 @@ def test_measures_each_task_once_and_bounds_what_remains(tmp_path: Path) -> None
         assert row["search_bound_s"] == pytest.approx(3 * task["round_s"])
         assert row["sweep_bound_core_h"] == pytest.approx(row["runs"] * 24 * row["search_bound_s"] / 3600)
     assert source["remaining_bound_core_h"] == pytest.approx((5 * 24 - 34) * source["search_bound_s"] / 3600)
-    assert "| cartpole | target | cartpole | 140 | 24 | 3 |" in done.stdout
+    assert ("cartpole", "target", "cartpole", "140", "24", "3") in {row[:6] for row in table_rows(done.stdout)}
 
 
 def test_refuses_one_sweep_root_for_every_experiment(tmp_path: Path) -> None:

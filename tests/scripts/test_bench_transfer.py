@@ -3,16 +3,15 @@
 from __future__ import annotations
 
 import csv
-import sys
 from pathlib import Path
 
 import yaml
 
 from qtl.recorder import METRICS_FILE
 from qtl.report import APPROACHES, approach_name, discover
+from tests.scripts.load import script
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "scripts"))
-import bench_transfer
+bench_transfer = script("bench_transfer")
 
 
 def _fake_run(run_dir: Path, returns: list[float]) -> None:

@@ -9,6 +9,8 @@ from pathlib import Path
 
 import pytest
 
+from tests.report.fakes import table_rows
+
 ROOT = Path(__file__).resolve().parents[2]
 SCRIPT = ROOT / "scripts" / "profile_rollout.py"
 TINY = ["task.horizon=6", "task.success.last_steps=2", "task.policy_size=4", "optimizer.restarts=2",
@@ -24,8 +26,8 @@ def test_profiles_one_batched_round_of_the_presets_sparse_model() -> None:
     assert done.returncode == 0, done.stderr[-3000:]
     # n = sparse_above + one horizon of the task's own transitions; R = the preset's restarts, batched
     assert "### experiment=cartpole_source: one search round, R = 2, H = 6, n = 26, sparse, m = 8" in done.stdout
-    table = [line for line in done.stdout.splitlines() if line.startswith("| ") and "---" not in line]
-    assert table[0] == "| operation | calls | self CPU (ms) | share |"
+    table = table_rows(done.stdout)
+    assert table[0] == ("operation", "calls", "self CPU (ms)", "share")
     assert len(table) == 1 + 4  # --rows
     assert "Rollout + gradient: median" in done.stdout
 

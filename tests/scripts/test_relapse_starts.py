@@ -1,4 +1,4 @@
-"""``scripts/relapse_starts.py`` on hand-made runs: episodes after the first success, by start-state percentile."""
+"""``scripts/research/relapse_starts.py`` on hand-made runs: episodes after the first success, by start state."""
 
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ from tests.report.fakes import write_run
 pytestmark = pytest.mark.e2e  # runs the real script in a subprocess
 
 ROOT = Path(__file__).resolve().parents[2]
-SCRIPT = ROOT / "scripts" / "relapse_starts.py"
+SCRIPT = ROOT / "scripts" / "research" / "relapse_starts.py"
 ENV = {"id": "qtl/CartPoleSwingUp-v0", "pole_mass": 1.5}  # x_0 ~ N(0, 0.1² I), D = 4
 TAIL = (3, 5)  # episodes whose start state lies at |z| = 3 (χ²_4 percentile 93.9 %); the others at |z| = 0.5 (0.7 %)
 

@@ -9,7 +9,7 @@ given Hydra overrides (e.g. ``propagation=moment_matching``, ``optimizer=adam op
 the predicted return before and after, each search run's best value, evaluations, wall time, and the returns
 of ``--episodes`` real episodes of the found policy (their success by the task's test).
 
-    .venv/bin/python scripts/probe_policy_search.py RUN_DIR [--checkpoint PATH] [--fresh] [--episodes 3]
+    .venv/bin/python scripts/research/probe_policy_search.py RUN_DIR [--checkpoint PATH] [--fresh] [--episodes 3]
         [--threads 1] [--seed 0] [OVERRIDE ...]
 """
 
@@ -21,50 +21,17 @@ import json
 import time
 from pathlib import Path
 
-import benchlib
 import torch
 
-from qtl.build import transfer_plan
-from qtl.data import TransitionDataset
+from qtl.bench import display_path
+from qtl.bench.refit import loaded, refitted
 from qtl.episodes import run_episode
-from qtl.errors import UserError
-from qtl.loop import MODEL_STREAM
-from qtl.models import DynamicsGP
-from qtl.models.warm_start import PreviousFit
-from qtl.runs import LoadedRun, load_run
-from qtl.seeding import torch_generator
 
 EVALUATION_SEED = 100  # real episodes use env seeds 100, 101, ...: not the run's own
 
 
-def refitted(run: LoadedRun) -> tuple[TransitionDataset, DynamicsGP]:
-    """The run's data, and the model the run's next episode would search on (Algorithm 1, lines 12-13): θ_p fitted
-    warm from the checkpoint's fit (``model.warm_start``) with the run's own random stream and the transfer plan's
-    cold start, then θ = the updating rule's θ_i from the checkpointed rule state (Eqs. 6-12; θ_p itself for PILCO).
-    Loads the run's source run, where it has one."""
-    cfg, checkpoint, parts = run.config, run.checkpoint, run.parts
-    data = run.dataset()
-    plan = transfer_plan(cfg, parts)
-    if "transfer" in checkpoint:  # checkpoints of runs made before transfer existed are PILCO runs
-        plan.load_state_dict(checkpoint["transfer"])
-    generator = torch_generator(cfg.seed, checkpoint["episode"] + 1, MODEL_STREAM)
-    model = parts.fit_dynamics(data, generator, start=plan.fit_start(), previous=PreviousFit.of_checkpoint(checkpoint))
-    theta_p = model.hyperparameters
-    theta = plan.update(theta_p, len(data), plan.compliance(model))
-    if theta is not theta_p:
-        model.hyperparameters = theta
-    return data, model
-
-
-def loaded(run_dir: Path, checkpoint: Path | None, overrides: list[str]) -> LoadedRun:
-    """:func:`qtl.runs.load_run`, bad input (not a run, an unknown override) as a one-line exit."""
-    try:
-        return load_run(run_dir, checkpoint=checkpoint, overrides=overrides)
-    except UserError as err:
-        raise SystemExit(f"{run_dir}: {err}") from None
-
-
 def main() -> None:
+    """Refit the run's model, search again with the overrides, try the found policy on the real system."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("run_dir", type=Path)
     parser.add_argument("--checkpoint", type=Path, help="default: the run's latest")
@@ -95,7 +62,7 @@ def main() -> None:
         episode = run_episode(env, task, parts.actor(policy), EVALUATION_SEED + k)
         real.append({"return": round(float(episode.rewards.sum()), 2), "success": bool(task.succeeded(episode.states))})
     env.close()
-    print(json.dumps({"run": benchlib.display_path(args.run_dir), "episode": run.episode, "n": len(data),
+    print(json.dumps({"run": display_path(args.run_dir), "episode": run.episode, "n": len(data),
                       "overrides": overrides, "fresh": args.fresh, "predicted_before": round(before, 2),
                       "predicted_after": round(found.value, 2),
                       "predicted_after_task_reward": round(after_task, 2),

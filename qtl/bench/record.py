@@ -1,60 +1,30 @@
-"""Shared plumbing of the ``scripts/bench_*.py`` benchmarks: machine facts and report sections."""
+"""What a benchmark records beside its figures: the machine, date, commit and command, its JSON and its section."""
 
 from __future__ import annotations
 
-import argparse
 import datetime as dt
 import json
 import os
 import platform
 import re
 import resource
-import statistics
 import subprocess
 import sys
-from collections.abc import Callable, Sequence
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import TypeVar
 
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
+from qtl.report.paths import repository_root
+
+
+def _clone() -> Path:
+    """The working tree the benchmarks write into: the one holding this package (an editable install, as
+    ``scripts/setup.sh`` makes it), else the one holding the current directory, else the current directory."""
+    return repository_root(Path(__file__)) or repository_root(Path.cwd()) or Path.cwd()
+
+
+ROOT = _clone()
 BENCHMARKS_MD = ROOT / "docs" / "benchmarks.md"
-
-
-def parse_with_overrides(parser: argparse.ArgumentParser) -> tuple[argparse.Namespace, list[str]]:
-    """The script's options and the Hydra overrides after them, a ``--`` separator dropped.
-
-    A leftover ``-…`` token is a mistyped option (Hydra overrides are ``key=value``): refused in one line
-    here, before any run starts, instead of reaching the runs' command lines and their recorded overrides.
-    """
-    args, rest = parser.parse_known_args()
-    overrides = [token for token in rest if token != "--"]
-    unknown = [token for token in overrides if token.startswith("-")]
-    if unknown:
-        parser.error(f"unrecognised option(s) {' '.join(unknown)}: see --help (Hydra overrides are key=value)")
-    return args, overrides
-
-
-T = TypeVar("T")
-R = TypeVar("R")
-
-
-def run_all(fn: Callable[[T], R], items: Sequence[T], jobs: int) -> list[R]:
-    """``fn`` over ``items``, ``jobs`` at a time, in order; every item runs even when another fails.
-
-    (``Executor.map`` cancels the items not yet started at the first failure it hands back, so one failed
-    run would silently drop the rest of a sweep.) The failures, if any, are then raised as one error.
-    """
-    with ThreadPoolExecutor(max_workers=jobs) as pool:
-        futures = [pool.submit(fn, item) for item in items]
-    errors = [(item, future.exception()) for item, future in zip(items, futures, strict=True)]
-    failed = [(item, err) for item, err in errors if err is not None]
-    if failed:
-        lines = "\n".join(f"  {item!r}: {str(err).strip()}" for item, err in failed)
-        raise RuntimeError(f"{len(failed)} of {len(items)} runs failed (the others finished):\n{lines}")
-    return [future.result() for future in futures]
 
 
 def machine() -> dict[str, str | int]:
@@ -143,20 +113,3 @@ def write_section(name: str, markdown: str) -> None:
     else:
         text = text.rstrip() + "\n\n" + block + "\n"
     BENCHMARKS_MD.write_text(text)
-
-
-def model_label(row: dict) -> str:
-    """How a result row's dynamics model reads in a table: 'exact' or 'sparse, m = <inducing inputs>'."""
-    return f"sparse, m = {row['inducing']}" if row["model"] == "sparse" else "exact"
-
-
-def mean_std(values: list[float], digits: int = 1) -> str:
-    """Mean ± std over seeds ("—" for none, the value alone for one)."""
-    if len(values) < 2:
-        return f"{values[0]:.{digits}f}" if values else "—"
-    return f"{statistics.mean(values):.{digits}f} ± {statistics.stdev(values):.{digits}f}"
-
-
-def first_successes(per_seed: list[dict]) -> str:
-    """The episode of each seed's first success ("—": none), space-separated."""
-    return " ".join("—" if r["first_success"] is None else str(r["first_success"]) for r in per_seed)

@@ -1,4 +1,4 @@
-"""``scripts/benchlib.py``: the commit a benchmark names, and the shared table cells."""
+"""``qtl.bench``: the commit a benchmark names, the shared table cells, its options and runs, its recorded paths."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import subprocess
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "scripts"))
-import benchlib
+from qtl import bench
+from qtl.bench import record
 
 
 def _repo(tmp_path: Path) -> Path:
@@ -27,19 +27,19 @@ def _repo(tmp_path: Path) -> Path:
 
 def test_commit_ignores_changed_docs_but_not_changed_code(tmp_path, monkeypatch) -> None:
     root = _repo(tmp_path)
-    monkeypatch.setattr(benchlib, "ROOT", root)
-    clean = benchlib.commit()
+    monkeypatch.setattr(record, "ROOT", root)
+    clean = bench.commit()
     assert len(clean) >= 7 and "+" not in clean
     (root / "docs" / "benchmarks.md").write_text("b\n")  # ` M docs/...`: a benchmark writing its table
-    assert benchlib.commit() == clean
+    assert bench.commit() == clean
     (root / "code.py").write_text("b\n")
-    assert benchlib.commit() == clean + "+changes"
+    assert bench.commit() == clean + "+changes"
 
 
 def test_mean_std_and_first_successes() -> None:
-    assert benchlib.mean_std([]) == "—" and benchlib.mean_std([2.0]) == "2.0"
-    assert benchlib.mean_std([1.0, 3.0], 2) == "2.00 ± 1.41"
-    assert benchlib.first_successes([{"first_success": 3}, {"first_success": None}]) == "3 —"
+    assert bench.mean_std([]) == "—" and bench.mean_std([2.0]) == "2.0"
+    assert bench.mean_std([1.0, 3.0], 2) == "2.00 ± 1.41"
+    assert bench.first_successes([{"first_success": 3}, {"first_success": None}]) == "3 —"
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -51,16 +51,16 @@ def _parser() -> argparse.ArgumentParser:
 
 def test_parse_with_overrides_drops_the_separator(monkeypatch) -> None:
     monkeypatch.setattr(sys, "argv", ["bench", "--seeds", "0", "1", "--", "recipe=mc_pilco", "+task.env.dt=0.05"])
-    args, overrides = benchlib.parse_with_overrides(_parser())
+    args, overrides = bench.parse_with_overrides(_parser())
     assert args.seeds == [0, 1] and overrides == ["recipe=mc_pilco", "+task.env.dt=0.05"]
     monkeypatch.setattr(sys, "argv", ["bench", "--tag", "x", "recipe=mc_pilco"])
-    assert benchlib.parse_with_overrides(_parser())[1] == ["recipe=mc_pilco"]
+    assert bench.parse_with_overrides(_parser())[1] == ["recipe=mc_pilco"]
 
 
 def test_parse_with_overrides_refuses_a_mistyped_option(monkeypatch, capsys) -> None:
     monkeypatch.setattr(sys, "argv", ["bench", "--sedes", "3", "recipe=mc_pilco"])
     try:
-        benchlib.parse_with_overrides(_parser())
+        bench.parse_with_overrides(_parser())
     except SystemExit as stop:
         assert stop.code == 2
     else:
@@ -77,10 +77,10 @@ def test_run_all_runs_every_item_when_one_fails() -> None:
             raise RuntimeError("run 1 failed")
         return item * 10
 
-    assert benchlib.run_all(job, [0, 2, 3], jobs=2) == [0, 20, 30]  # in order
+    assert bench.run_all(job, [0, 2, 3], jobs=2) == [0, 20, 30]  # in order
     ran.clear()
     try:
-        benchlib.run_all(job, [0, 1, 2, 3, 4], jobs=1)  # one worker: Executor.map would cancel 2, 3 and 4
+        bench.run_all(job, [0, 1, 2, 3, 4], jobs=1)  # one worker: Executor.map would cancel 2, 3 and 4
     except RuntimeError as err:
         assert "1 of 5 runs failed" in str(err) and "run 1 failed" in str(err)
     else:
@@ -99,15 +99,15 @@ def test_each_generated_section_of_the_benchmarks_doc_holds_only_its_own_heading
 
 def test_recorded_paths_are_relative_to_the_repository(monkeypatch, tmp_path) -> None:
     """A path inside the repository is recorded relative to it; one outside it by its name only."""
-    root = benchlib.ROOT
-    assert benchlib.display_path(root / "docs" / "bench" / "gp.json") == "docs/bench/gp.json"
-    assert benchlib.display_path(tmp_path / "runs" / "seed_0") == "…/seed_0"  # tmp_path: outside the checkout
+    root = bench.ROOT
+    assert bench.display_path(root / "docs" / "bench" / "gp.json") == "docs/bench/gp.json"
+    assert bench.display_path(tmp_path / "runs" / "seed_0") == "…/seed_0"  # tmp_path: outside the checkout
     monkeypatch.chdir(root)
-    assert benchlib.display_path(Path("runs") / "x") == "runs/x"
+    assert bench.display_path(Path("runs") / "x") == "runs/x"
     monkeypatch.setattr(sys, "argv", [
         str(root / "scripts" / "bench_transfer.py"), "--sources", str(root / "runs" / "a"), f"cartpole={root}/runs/b",
         "--output", str(tmp_path / "out.json"), "task.horizon=10", "task.search_reward={angles: absolute}"])
-    assert benchlib.command_line() == ("python scripts/bench_transfer.py --sources runs/a cartpole=runs/b "
+    assert bench.command_line() == ("python scripts/bench_transfer.py --sources runs/a cartpole=runs/b "
                                        "--output …/out.json task.horizon=10 task.search_reward={angles: absolute}")
 
 

@@ -3,7 +3,7 @@
 A diagnostic for a propagator whose searches fail: if its rollouts value a known good policy (e.g. the one
 moment matching found from the same data) as highly as moment matching does, the model and the estimate are
 right and the search is what fails. The model is refitted on the data of ``--data`` (a checkpoint of
-``RUN_DIR``) with the run's model settings, as ``scripts/probe_policy_search.py`` does; ψ is the policy of
+``RUN_DIR``) with the run's model settings, as ``probe_policy_search.py`` does; ψ is the policy of
 ``--policy`` (by default the same checkpoint). Printed as JSON: moment matching's predicted return, and for
 each particle propagator (marginal or pathwise sampling, x + Δ or speed integration where the task declares
 its kinematics) the predicted return under the task's reward over ``--draws`` draws of ``--particles``; where
@@ -13,7 +13,7 @@ also the reparameterised gradient ∂V/∂ψ of each particle propagator over K 
 |mean| / std of one draw (its signal-to-noise ratio), and the mean cosine between one draw's gradient and moment
 matching's. ``--start-scale s`` values everything from N(μ_0, s² Σ_0) (the search's ``search_start_scale``).
 
-    .venv/bin/python scripts/probe_policy_value.py RUN_DIR --data PATH [--policy PATH] [--draws 5]
+    .venv/bin/python scripts/research/probe_policy_value.py RUN_DIR --data PATH [--policy PATH] [--draws 5]
         [--particles 400] [--features 256] [--gradients K] [--start-scale s] [--threads 1] [--seed 0] [OVERRIDE ...]
 """
 
@@ -23,17 +23,18 @@ import argparse
 import json
 from pathlib import Path
 
-import benchlib
 import torch
-from probe_policy_search import loaded, refitted
 from torch import Tensor
 
+from qtl.bench import display_path
+from qtl.bench.refit import loaded, refitted
 from qtl.checkpoint import load_checkpoint
 from qtl.gaussian import Gaussian
 from qtl.propagation import MomentMatching, Particles
 
 
 def main() -> None:
+    """Refit the run's model; value the policy by moment matching and by each particle propagator; print JSON."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("run_dir", type=Path)
     parser.add_argument("--data", type=Path, required=True, help="checkpoint whose data the model is fitted on")
@@ -66,7 +67,7 @@ def main() -> None:
     if task.kinematics is not None:
         variants |= {f"{name}_speed": {**kw, "integration": "speed", "kinematics": task.kinematics}
                      for name, kw in list(variants.items())}
-    report = {"run": benchlib.display_path(args.run_dir), "data_episode": data_checkpoint["episode"], "n": len(data),
+    report = {"run": display_path(args.run_dir), "data_episode": data_checkpoint["episode"], "n": len(data),
               "policy_episode": policy_checkpoint["episode"], "start_scale": args.start_scale, "overrides": overrides}
     params = [p for p in policy.parameters() if p.requires_grad]
 

@@ -1,4 +1,4 @@
-"""``scripts/evaluate_policies.py`` on a real (tiny) run: its final policy replayed from chosen start states."""
+"""``qtl-evaluate`` (:mod:`qtl.pipeline.evaluate`) on a real (tiny) run: its final policy replayed from given starts."""
 
 from __future__ import annotations
 
@@ -18,16 +18,14 @@ from qtl.report.final_policies import FINAL_POLICIES_FILE
 from tests.helpers import tiny_config
 from tests.test_runs import BEFORE_THE_FAST_PATHS, as_made_before_the_fast_paths
 
-pytestmark = pytest.mark.e2e  # runs the real script in a subprocess
+pytestmark = pytest.mark.e2e  # runs the real command in a subprocess
 
-ROOT = Path(__file__).resolve().parents[2]
-SCRIPT = ROOT / "scripts" / "evaluate_policies.py"
 SEED = 3
 
 
 def _call(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, str(SCRIPT), *args], capture_output=True, text=True, timeout=300,
-                          env={**os.environ, "OMP_NUM_THREADS": "1"})
+    return subprocess.run([sys.executable, "-m", "qtl.pipeline.evaluate", *args], capture_output=True, text=True,
+                          timeout=300, env={**os.environ, "OMP_NUM_THREADS": "1"})
 
 
 @pytest.fixture(scope="module")
@@ -84,13 +82,13 @@ def test_bad_arguments_are_refused_in_one_line(tmp_path: Path) -> None:
 
 def test_runs_without_their_checkpoints_are_refused_in_one_line_before_any_work(experiment: Path,
                                                                                 tmp_path: Path) -> None:
-    # A finished sweep kept in git holds no checkpoints (docs/experiments/README.md): the script names what is missing.
+    # A finished sweep kept in git holds no checkpoints (docs/experiments/README.md): the command names what is missing.
     lean = tmp_path / "lean"
     shutil.copytree(experiment, lean, ignore=shutil.ignore_patterns("checkpoints", FINAL_POLICIES_FILE))
     done = _call(str(lean), "--starts", "2")
     assert done.returncode == 2 and "Traceback" not in done.stderr
     last = done.stderr.strip().splitlines()[-1]
-    assert f"1 of 1 run(s) hold no checkpoint (checkpoints/episode_NNNN.pt), whose policy this script runs: " \
+    assert f"1 of 1 run(s) hold no checkpoint (checkpoints/episode_NNNN.pt), whose policy this command runs: " \
            f"target/pilco/m0.5/seed_{SEED};" in last
     assert not (lean / FINAL_POLICIES_FILE).exists()
 

@@ -1,4 +1,4 @@
-"""A paper experiment as two real Hydra sweeps on the joblib launcher, then its report (tiny budget)."""
+"""``qtl-experiment``: a paper experiment as two real Hydra sweeps on the joblib launcher, then its report (tiny)."""
 
 from __future__ import annotations
 
@@ -11,25 +11,24 @@ import pytest
 import yaml
 
 from qtl.launch import planned_runs
+from qtl.pipeline import experiment
 from qtl.report import ExperimentRecord, autopilot_return
 from qtl.report.progress import sweep_progress
 from tests.helpers import BUDGET
 from tests.report.fakes import write_run
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
-import run_experiment
-
 pytestmark = pytest.mark.e2e  # runs the real CLI in subprocesses: -m 'not e2e' skips it
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
+COMMAND = [sys.executable, "-m", "qtl.pipeline.experiment"]  # qtl-experiment, as the installed entry point runs it
 TINY = ["episodes=1", *BUDGET]
 
 
 @pytest.fixture(scope="module")
 def quick_cartpole(tmp_path_factory) -> tuple[Path, subprocess.CompletedProcess]:
     root = tmp_path_factory.mktemp("experiment") / "cartpole_quick"
-    done = subprocess.run([sys.executable, str(ROOT / "scripts" / "run_experiment.py"), "cartpole", "--quick",
-                           *TINY, f"sweep.root={root}"], capture_output=True, text=True, timeout=600, cwd=root.parent)
+    done = subprocess.run([*COMMAND, "cartpole", "--quick", *TINY, f"sweep.root={root}"], capture_output=True,
+                          text=True, timeout=600, cwd=root.parent)
     assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-3000:]
     return root, done
 
@@ -66,8 +65,8 @@ def test_status_names_every_run_the_real_multirun_made_and_finds_them_finished(q
         "cartpole_quick", [*TINY, f"sweep.root={root}"])
     assert sorted(r.run_dir for r in planned) == made
     assert all(p.finished and p.done == 2 for p in sweep_progress(planned))
-    status = subprocess.run([sys.executable, str(ROOT / "scripts" / "run_experiment.py"), "cartpole", "--quick",
-                             "--status", *TINY, f"sweep.root={root}"], capture_output=True, text=True, timeout=300)
+    status = subprocess.run([*COMMAND, "cartpole", "--quick", "--status", *TINY, f"sweep.root={root}"],
+                            capture_output=True, text=True, timeout=300)
     assert status.returncode == 0, status.stderr[-3000:]
     assert "**sources (cartpole_quick_source)**: 2 of 2 runs finished" in status.stdout
     assert "**targets (cartpole_quick)**: 4 of 4 runs finished" in status.stdout
@@ -95,10 +94,9 @@ def test_the_aircraft_driver_records_the_autopilot_line_before_the_report(tmp_pa
                 write_run(root / "target" / approach / "helicopter" / "seed_0", [0.0, 20.0, 30.0],
                           overrides=[f"approach={approach}", "seed=0"], env=helicopter, horizon=60)
 
-    monkeypatch.setattr(run_experiment.subprocess, "run", sweep)
-    monkeypatch.setattr(sys, "argv", ["run_experiment.py", "aircraft", "--quick", f"sweep.root={root}"])
+    monkeypatch.setattr(experiment.subprocess, "run", sweep)
     monkeypatch.chdir(tmp_path)  # run from above the sweep: experiment.yaml names it relative, not as this machine's
-    run_experiment.main()
+    experiment.main(["aircraft", "--quick", f"sweep.root={root}"])
     assert stages == ["experiment=aircraft_quick_source", "experiment=aircraft_quick"]
     record = ExperimentRecord.read(root)
     assert record.name == "aircraft" and len(record.commands) == 2
@@ -120,14 +118,30 @@ def test_a_sweep_kept_without_its_checkpoints_is_refused_before_anything_runs(tm
     def sweep(command: list[str], check: bool) -> None:
         raise AssertionError(f"ran {command}")
 
-    monkeypatch.setattr(run_experiment.subprocess, "run", sweep)
-    monkeypatch.setattr(sys, "argv", ["run_experiment.py", "cartpole", "--quick", f"sweep.root={root}"])
+    monkeypatch.setattr(experiment.subprocess, "run", sweep)
     with pytest.raises(SystemExit) as stop:
-        run_experiment.main()
+        experiment.main(["cartpole", "--quick", f"sweep.root={root}"])
     err = capsys.readouterr().err
-    assert stop.value.code == 1 and err.count("\n") == 1
-    assert "1 run(s) under" in err and "(e.g. source/seed_0)" in err and "another sweep.root" in err
+    assert stop.value.code == 1 and err.count("\n") == 1 and err.startswith("qtl-experiment: 1 run(s) under")
+    assert "(e.g. source/seed_0)" in err and "another sweep.root" in err
     assert not (root / "experiment.yaml").exists()
+
+
+@pytest.mark.parametrize(("argv", "says"), [
+    (["nope=1"], "Could not override 'nope'"),  # a key the config lacks
+    (["approach=nope"], "Could not find 'approach/nope'"),  # an option the group lacks
+    (["--sweep-root=x"], "unrecognised option(s) --sweep-root=x"),  # a mistyped option, not an override
+])
+def test_bad_input_is_refused_in_one_line_before_anything_runs(tmp_path, monkeypatch, capsys, argv, says):
+    def sweep(command: list[str], check: bool) -> None:
+        raise AssertionError(f"ran {command}")
+
+    monkeypatch.setattr(experiment.subprocess, "run", sweep)
+    with pytest.raises(SystemExit) as stop:
+        experiment.main(["cartpole", "--quick", f"sweep.root={tmp_path / 'x'}", *argv])
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert stop.value.code == 2 and last.startswith("qtl-experiment: error:") and says in last
+    assert not (tmp_path / "x").exists()
 
 
 @pytest.mark.parametrize("preset", sorted(p.stem for p in (ROOT / "configs" / "experiment").glob("*.yaml")

@@ -1,16 +1,16 @@
-"""The final policy of every finished run, tried from the same K start states on the real system.
+"""qtl-evaluate: the final policy of every finished run, tried from the same K start states on the real system.
 
 Table 1's final performance is the mean return of a run's last 3 episodes: 3 start states per seed, shared by
-every run of that seed, so one hard start in them moves a whole column (see ``scripts/relapse_starts.py``).
-This script loads each run's newest checkpoint (the policy that ran its last episode), runs it on the run's
+every run of that seed, so one hard start in them moves a whole column (see ``scripts/research/relapse_starts.py``).
+This command loads each run's newest checkpoint (the policy that ran its last episode), runs it on the run's
 own task from K start states x_0 ~ N(μ_0, Σ_0) drawn once for all runs (``--eval-seed``; none of them is a
 training episode's), prints per approach and target the success rate and mean return over those starts
 (Tables F1-F2, mean ± std over seeds) and writes every run's numbers to ``<root>/final_policies.json``, where
-``scripts/report.py`` reads them back. No model is fitted and nothing in the run directories is written.
+``qtl-report`` reads them back. No model is fitted and nothing in the run directories is written.
 It needs every run's checkpoints, which a finished sweep in git does not keep (docs/experiments/README.md): a run
 without them is refused, with the others, before anything is run.
 
-    python scripts/evaluate_policies.py docs/experiments/cartpole --finished-only --starts 100
+    qtl-evaluate runs/experiments/cartpole --finished-only --starts 100
 """
 
 from __future__ import annotations
@@ -19,29 +19,28 @@ import argparse
 import json
 import sys
 import time
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-import qtl.envs  # noqa: E402,F401  (registers the qtl/ environments)
-from qtl.checkpoint import CHECKPOINT_DIR, episodes_done  # noqa: E402
-from qtl.episodes import run_episode  # noqa: E402
-from qtl.report.discover import Experiment, discover  # noqa: E402
-from qtl.report.final_policies import (  # noqa: E402
+import qtl.envs  # noqa: F401  (registers the qtl/ environments)
+from qtl.checkpoint import CHECKPOINT_DIR, episodes_done
+from qtl.episodes import run_episode
+from qtl.report.discover import Experiment, discover
+from qtl.report.final_policies import (
     FINAL_POLICIES_FILE,
     SOURCE,
     final_policies_markdown,
     read_final_policies,
 )
-from qtl.report.paths import recorded_path  # noqa: E402
-from qtl.runs import load_run  # noqa: E402
-from qtl.seeding import ENV_STREAM, derive_seed  # noqa: E402
+from qtl.report.paths import recorded_path
+from qtl.runs import load_run
+from qtl.seeding import ENV_STREAM, derive_seed
 
+PROG = "qtl-evaluate"
 EVAL_SEED = 1_000_003  # the start states' seed: not a run seed of any sweep, so no start is a training episode's
 NAMED = 3  # runs named in a refusal; the others counted
 
@@ -106,7 +105,7 @@ def unevaluable(experiment: Experiment) -> str | None:
             behind.append(f"{name} ({made} checkpointed, {episodes} in metrics.csv)")
     if missing:
         return (f"{recorded_path(experiment.root)}: {len(missing)} of {len(runs_of(experiment))} run(s) hold no "
-                f"checkpoint ({CHECKPOINT_DIR}/episode_NNNN.pt), whose policy this script runs: {_named(missing)}; "
+                f"checkpoint ({CHECKPOINT_DIR}/episode_NNNN.pt), whose policy this command runs: {_named(missing)}; "
                 "a finished sweep kept in git has none: rerun its sweep (the same command makes the same runs) or "
                 "check out the commit that holds them (docs/experiments/README.md)")
     if behind:
@@ -132,16 +131,16 @@ def evaluate(experiment: Experiment, starts: int, eval_seed: int) -> list[Evalua
     return found
 
 
-def main(argv: list[str] | None = None) -> None:
+def main(argv: Sequence[str] | None = None) -> None:
     """Parse the arguments, evaluate the final policies, print the tables (and write JSON)."""
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("root", type=Path, help="an experiment directory (as scripts/run_experiment.py leaves it)")
+    parser = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n\n")[0])
+    parser.add_argument("root", type=Path, help="an experiment directory (as qtl-experiment leaves it)")
     parser.add_argument("--finished-only", action="store_true", help="leave out runs short of their episodes")
     parser.add_argument("--starts", type=int, default=100, help="start states per policy (default 100)")
     parser.add_argument("--eval-seed", type=int, default=EVAL_SEED, help="seed of the start states")
     parser.add_argument("--output", type=Path,
                         help=f"where every run's numbers go as JSON (default: <root>/{FINAL_POLICIES_FILE}, "
-                             "which scripts/report.py reads)")
+                             "which qtl-report reads)")
     args = parser.parse_args(argv)
     if not args.root.is_dir():
         parser.error(f"{args.root} is not a directory: give an experiment directory")

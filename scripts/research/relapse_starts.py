@@ -12,7 +12,7 @@ states (from its newest checkpoint's data set) and success tests (``metrics.csv`
 It needs every run's newest checkpoint, which a finished sweep kept in git does not hold (docs/experiments/README.md):
 without them it stops, in one line, before reading any run.
 
-    python scripts/relapse_starts.py docs/experiments/cartpole --finished-only --output relapses.json
+    python scripts/research/relapse_starts.py runs/experiments/cartpole --finished-only --output relapses.json
 """
 
 from __future__ import annotations
@@ -21,7 +21,6 @@ import argparse
 import itertools
 import json
 import math
-import sys
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -31,15 +30,12 @@ import pandas as pd
 import torch
 import yaml
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-import qtl.envs  # noqa: E402,F401  (registers the qtl/ environments)
-from qtl.checkpoint import CHECKPOINT_DIR, episodes_done, latest_checkpoint, load_checkpoint  # noqa: E402
-from qtl.metrics import first_success  # noqa: E402
-from qtl.report.discover import discover  # noqa: E402
-from qtl.report.paths import recorded_path  # noqa: E402
-from qtl.report.tables import markdown  # noqa: E402
+import qtl.envs  # noqa: F401  (registers the qtl/ environments)
+from qtl.checkpoint import CHECKPOINT_DIR, episodes_done, latest_checkpoint, load_checkpoint
+from qtl.metrics import first_success
+from qtl.report.discover import discover
+from qtl.report.paths import recorded_path
+from qtl.report.tables import markdown
 
 PERCENTILE_BINS = (0.0, 0.5, 0.75, 0.9, 1.0)  # of the start distribution: the inner half, then the tails
 CONFIG = Path(".hydra") / "config.yaml"
@@ -177,7 +173,7 @@ def report(episodes: list[Episode]) -> tuple[str, dict[str, object]]:
 def main(argv: list[str] | None = None) -> None:
     """Parse the arguments, classify the episodes, print the tables (and write JSON)."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("root", type=Path, help="an experiment directory (as scripts/run_experiment.py leaves it)")
+    parser.add_argument("root", type=Path, help="an experiment directory (as qtl-experiment leaves it)")
     parser.add_argument("--finished-only", action="store_true", help="leave out runs short of their episodes")
     parser.add_argument("--output", type=Path, help="also write the numbers as JSON here")
     args = parser.parse_args(argv)

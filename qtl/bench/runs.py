@@ -1,0 +1,75 @@
+"""Benchmarks that make learning runs: options with Hydra overrides after them, runs in parallel, a run's figures."""
+
+from __future__ import annotations
+
+import argparse
+import csv
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import TypeVar
+
+from qtl.bench.record import display_path
+from qtl.launch import ensure_run
+from qtl.metrics import first_success
+from qtl.recorder import METRICS_FILE, TIMINGS_FILE
+
+T = TypeVar("T")
+R = TypeVar("R")
+
+
+def parse_with_overrides(parser: argparse.ArgumentParser,
+                         argv: Sequence[str] | None = None) -> tuple[argparse.Namespace, list[str]]:
+    """The command's options and the Hydra overrides after them, a ``--`` separator dropped.
+
+    A leftover ``-…`` token is a mistyped option (Hydra overrides are ``key=value``): refused in one line
+    here, before any run starts, instead of reaching the runs' command lines and their recorded overrides.
+    """
+    args, rest = parser.parse_known_args(argv)
+    overrides = [token for token in rest if token != "--"]
+    unknown = [token for token in overrides if token.startswith("-")]
+    if unknown:
+        parser.error(f"unrecognised option(s) {' '.join(unknown)}: see --help (Hydra overrides are key=value)")
+    return args, overrides
+
+
+def run_all(fn: Callable[[T], R], items: Sequence[T], jobs: int) -> list[R]:
+    """``fn`` over ``items``, ``jobs`` at a time, in order; every item runs even when another fails.
+
+    (``Executor.map`` cancels the items not yet started at the first failure it hands back, so one failed
+    run would silently drop the rest of a sweep.) The failures, if any, are then raised as one error.
+    """
+    with ThreadPoolExecutor(max_workers=jobs) as pool:
+        futures = [pool.submit(fn, item) for item in items]
+    errors = [(item, future.exception()) for item, future in zip(items, futures, strict=True)]
+    failed = [(item, err) for item, err in errors if err is not None]
+    if failed:
+        lines = "\n".join(f"  {item!r}: {str(err).strip()}" for item, err in failed)
+        raise RuntimeError(f"{len(failed)} of {len(items)} runs failed (the others finished):\n{lines}")
+    return [future.result() for future in futures]
+
+
+def read_csv(path: Path) -> list[dict[str, str]]:
+    """The rows of a run's CSV file (``metrics.csv``, ``timings.csv``) as dicts of text."""
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def run_seed(seed: int, episodes: int, run_dir: Path, overrides: list[str], threads: int = 1) -> dict:
+    """One full learning run through the CLI (reused or resumed when there is one); its per-episode figures."""
+    wall = ensure_run([f"seed={seed}", f"episodes={episodes}", *overrides], run_dir, episodes + 1, threads=threads)
+    rows = read_csv(run_dir / METRICS_FILE)[: episodes + 1]
+    timings = read_csv(run_dir / TIMINGS_FILE)[: episodes + 1]
+    learned = [t for t, r in zip(timings, rows, strict=True) if r["kind"] == "policy"]
+    successes = [int(r["success"]) for r in rows]
+    return {
+        "seed": seed,
+        "run_dir": display_path(run_dir),
+        "returns": [float(r["return"]) for r in rows],
+        "predicted_returns": [float(r["predicted_return"]) for r in rows],
+        "successes": successes,
+        "first_success": first_success(successes),
+        "model_fit_s_per_episode": sum(float(t["model_fit_s"]) for t in learned) / max(len(learned), 1),
+        "policy_search_s_per_episode": sum(float(t["policy_search_s"]) for t in learned) / max(len(learned), 1),
+        "wall_s": wall,  # of this call: 0 for a reused run, the resumed part only for a resumed one
+    }
