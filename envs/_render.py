@@ -61,7 +61,9 @@ class Canvas:
         self.x_min = x_min
         self.y_max = y_max
         self.width = int(width)
-        self.height = round((y_max - y_min) * self.scale)
+        # Rounded to 1e-6 px first: a view that moves (the cart-pole's follows its cart) keeps one height, whatever
+        # round-off its x range carries.
+        self.height = round(round((y_max - y_min) * self.scale, 6))
         self._img = np.empty((self.height, self.width, 3), dtype=float)
         self._img[...] = np.asarray(background, dtype=float)
 

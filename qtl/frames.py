@@ -22,7 +22,6 @@ import numpy as np
 from gymnasium.envs.registration import load_env_creator
 
 from qtl.checkpoint import rng_state, set_rng_state
-from qtl.env_wrappers import ActionRepeat, CenteredAction
 from qtl.episodes import Actor, Episode, run_episode
 from qtl.errors import UserError
 from qtl.task import Task, env_spec
@@ -82,8 +81,14 @@ def render_env(task: Task) -> tuple[gymnasium.Env, FrameRecorder]:
     if declared is not None and RGB_ARRAY not in declared:
         raise UserError(f"task.env.id={task.env_id!r} draws no frames: its render modes are {declared or 'none'}, "
                         f"not {RGB_ARRAY!r}")
+    recorders: list[FrameRecorder] = []
+
+    def recording(env: gymnasium.Env) -> FrameRecorder:
+        recorders.append(FrameRecorder(env))
+        return recorders[-1]
+
     try:
-        env = gymnasium.make(task.env_id, render_mode=RGB_ARRAY, **task.env_kwargs)
+        env = task.make_env(render_mode=RGB_ARRAY, inner=recording)
     except Exception as err:  # e.g. a factory whose env takes no render_mode
         raise UserError(f"cannot make task.env.id={task.env_id!r} with render_mode={RGB_ARRAY!r}: "
                         f"{type(err).__name__}: {_first_line(err)}") from err
@@ -91,7 +96,7 @@ def render_env(task: Task) -> tuple[gymnasium.Env, FrameRecorder]:
         env.close()
         raise UserError(f"task.env.id={task.env_id!r} draws no frames: it was made with render_mode={RGB_ARRAY!r} "
                         f"and has render_mode={getattr(env.unwrapped, 'render_mode', None)!r}")
-    recorder = FrameRecorder(env)
+    recorder = recorders[0]
     try:
         recorder.reset(seed=0, options=task.reset_options)  # the renderer starts here (OpenGL, pygame)
     except UserError:
@@ -103,8 +108,7 @@ def render_env(task: Task) -> tuple[gymnasium.Env, FrameRecorder]:
         gl = (f" (MuJoCo draws with OpenGL, MUJOCO_GL={os.environ.get('MUJOCO_GL')}: try egl, osmesa or glfw)"
               if "mujoco" in type(err).__module__.lower() or "OpenGL" in first else "")
         raise UserError(f"cannot render task.env.id={task.env_id!r}: {type(err).__name__}: {first}{gl}") from err
-    wrapped: gymnasium.Env = recorder if task.action_repeat == 1 else ActionRepeat(recorder, task.action_repeat)
-    return (wrapped if task.action_center is None else CenteredAction(wrapped)), recorder
+    return env, recorder
 
 
 def declared_render_modes(env_id: str) -> list[str] | None:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import importlib
 import inspect
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
@@ -124,9 +124,18 @@ class Task:
         """Dimension of the GP input [features, action]."""
         return self.feature_dim + self.action_dim
 
-    def make_env(self) -> gymnasium.Env:
-        """A fresh env of this task: actions in [−action_bound, action_bound], each held ``action_repeat`` env steps."""
-        env = gymnasium.make(self.env_id, **self.env_kwargs)
+    def make_env(
+        self, render_mode: str | None = None, inner: Callable[[gymnasium.Env], gymnasium.Env] | None = None
+    ) -> gymnasium.Env:
+        """A fresh env of this task: actions in [−action_bound, action_bound], each held ``action_repeat`` env steps.
+
+        ``render_mode``: gymnasium's, for an env that draws (default: none); ``inner``: a wrapper put on the env
+        below qtl's own (e.g. a frame recorder that sees every held step).
+        """
+        kwargs = self.env_kwargs if render_mode is None else {**self.env_kwargs, "render_mode": render_mode}
+        env = gymnasium.make(self.env_id, **kwargs)
+        if inner is not None:
+            env = inner(env)
         if self.action_repeat != 1:
             env = ActionRepeat(env, self.action_repeat)
         return env if self.action_center is None else CenteredAction(env)
