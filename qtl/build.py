@@ -242,7 +242,7 @@ def _bound_settings(factory: Any) -> dict[str, Any]:
 
 
 def _with_kinematics(make_propagator: PropagatorFactory, task: Task, cfg: DictConfig) -> PropagatorFactory:
-    """Particles with speed integration get the task's kinematics bound; a UserError where it declares none."""
+    """A propagator with speed integration gets the task's kinematics bound; a UserError where it declares none."""
     if cfg.propagation.get("integration", "delta") != "speed":
         return make_propagator
     if task.kinematics is None:

@@ -1,9 +1,17 @@
-"""Gaussian state distributions and the moment-matched image of a map applied to one."""
+"""Gaussian state distributions, the moment-matched image of a map applied to one, and per-element factorisations.
+
+A batched rollout (restarts `R` searched together) factorises covariances of every batch element at once. Outside
+:func:`element_failures` a factorisation that fails for any element raises ``torch.linalg.LinAlgError``, as
+``torch.linalg.cholesky`` does; inside, the failed elements' results are NaN (so their values are not finite) and
+their masks are listed, while the other elements are computed exactly as they would be without them.
+"""
 
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from contextvars import ContextVar
 from dataclasses import dataclass
 
 import torch
@@ -168,3 +176,59 @@ def compose(inner: MomentMatch, outer: MomentMatch) -> MomentMatch:
         cross_cov=inner.cross_cov @ outer.gain,
         gain=inner.gain @ outer.gain,
     )
+
+
+# The failed-element masks of the current :func:`element_failures` block (None: failures raise).
+_FAILURES: ContextVar[list[Tensor] | None] = ContextVar("qtl_element_failures", default=None)
+NOT_PD = "the factorization could not be completed because the input is not positive-definite"
+
+
+@contextmanager
+def element_failures() -> Iterator[list[Tensor]]:
+    """Inside, a factorisation failing for some batch elements makes their results NaN; yields their masks `...`."""
+    masks: list[Tensor] = []
+    token = _FAILURES.set(masks)
+    try:
+        yield masks
+    finally:
+        _FAILURES.reset(token)
+
+
+def failed_elements(failed: Tensor, inner: int = 0, what: str = "linalg.cholesky") -> Tensor | None:
+    """``failed`` `... x *inner` (nonzero: failed, e.g. ``info``) as a mask, each element `...` set wholly; or None.
+
+    An element fails where any of its parts did. Outside :func:`element_failures` a failure raises
+    ``torch.linalg.LinAlgError``; inside, the element mask `...` is recorded.
+    """
+    if not bool(failed.any()):
+        return None
+    masks = _FAILURES.get()
+    if masks is None:
+        raise torch.linalg.LinAlgError(f"{what}: {NOT_PD}")
+    failed = failed != 0
+    element = failed.flatten(failed.dim() - inner).any(-1) if inner else failed
+    masks.append(element)
+    return element.reshape(*element.shape, *(1,) * inner).expand(failed.shape)
+
+
+def cholesky(mat: Tensor, inner: int = 0) -> tuple[Tensor, Tensor | None]:
+    """(L, failed): the Cholesky factor of symmetric `... x D x D` and the mask `...` of failed ones (None: none).
+
+    ``inner``: how many trailing batch dimensions belong to one element (all of its matrices fail together).
+    A failed matrix is factorised as the identity (L = I, finite, gradient zero): its caller makes its results
+    NaN by :func:`nan_where`. Outside :func:`element_failures` a failure raises instead.
+    """
+    chol, info = torch.linalg.cholesky_ex(mat)
+    failed = failed_elements(info, inner)
+    if failed is None:
+        return chol, None
+    eye = identity(mat.shape[-1], mat.dtype, mat.device)
+    return torch.linalg.cholesky(torch.where(failed[..., None, None], eye, mat)), failed
+
+
+def nan_where(failed: Tensor | None, value: Tensor) -> Tensor:
+    """``value`` `... x *rest` with NaN where ``failed`` `...` is set (as is when ``failed`` is None)."""
+    if failed is None:
+        return value
+    mask = failed.reshape(*failed.shape, *(1,) * (value.dim() - failed.dim()))
+    return value.masked_fill(mask, float("nan"))

@@ -17,7 +17,7 @@ from typing import TextIO
 
 # The events, in the order of health.csv's columns.
 NONFINITE = "nonfinite_objectives"  # policy-search evaluations whose predicted return or gradient was not finite
-LINALG = "linalg_failures"  # evaluations whose propagation failed in a factorisation (torch.linalg.LinAlgError)
+LINALG = "linalg_failures"  # evaluations whose rollout failed in a factorisation (LinAlgError; batched: per restart)
 SEARCH_STOPPED = "search_runs_stopped"  # policy-search runs (restarts) ended early at a numerically invalid ψ
 JITTER = "cholesky_jitter"  # Cholesky factorisations retried with jitter on the diagonal (recovered, or not)
 GP_FIT_FAILED = "gp_fit_failures"  # GP-fit runs discarded, or resumed after a failed line-search step

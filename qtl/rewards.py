@@ -16,7 +16,7 @@ from numpy.typing import ArrayLike
 from torch import Tensor
 
 from qtl.features import AngleFeatures
-from qtl.gaussian import Gaussian
+from qtl.gaussian import Gaussian, cholesky, nan_where
 from qtl.kernels.engine import DEFAULT_ENGINE, Engine
 
 # Eigenvalues of W below this fraction of the largest are treated as zero (W is PSD).
@@ -110,11 +110,11 @@ class ExpectedSaturatingReward:
         factor = self.factor.to(y.mean)
         proj_cov = factor @ y.cov @ factor.mT
         eye = torch.eye(factor.shape[0], dtype=proj_cov.dtype, device=proj_cov.device)
-        chol = torch.linalg.cholesky(proj_cov + eye)
+        chol, failed = cholesky(proj_cov + eye)  # not positive-definite: raises, or NaN (qtl.gaussian)
         err = (y.mean - self.target.to(y.mean)) @ factor.mT
         white = torch.linalg.solve_triangular(chol, err[..., None], upper=False).squeeze(-1)
         half_logdet = torch.diagonal(chol, dim1=-2, dim2=-1).log().sum(-1)
-        return torch.exp(-half_logdet - 0.5 * white.square().sum(-1))
+        return nan_where(failed, torch.exp(-half_logdet - 0.5 * white.square().sum(-1)))
 
     def expected(self, state: Gaussian, engine: Engine = DEFAULT_ENGINE) -> Tensor:
         """E[r(x)] for a raw Gaussian state `... x D` → `...` (Eq. 13).

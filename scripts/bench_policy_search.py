@@ -21,9 +21,15 @@ fused, native}: the same data, model and ψ_0, each in its own subprocess; absol
 torch + sequential + reference (today's defaults), and the predicted returns found.
 ``--no-compare`` skips it.
 
+``--compare integration`` (issue 63) runs instead full-state against kinematic moment matching
+(``propagation.integration=delta|speed``, :mod:`qtl.bench.kinematic`): the loop's search at each ``--compare-sizes``
+n on the cart-pole, each row in its own subprocess, and one batched round of the aircraft stage with
+``--aircraft-inducing`` m (0: none), both steps on one fitted model; its own JSON and section (*_integration).
+
     .venv/bin/python scripts/bench_policy_search.py [--sizes 250 500 1000] [--dtypes float64 float32]
         [--propagators moment_matching particles] [--threads 2] [--device cpu] [--repeats 3]
         [--skip-search | --search-at-targets] [--compare-sizes 250 | --no-compare | --compare-only]
+        [--compare integration [--aircraft-inducing 300] [--aircraft-overrides OVERRIDE ...]]
         [--variants native/batched/native ...]
         [--overrides OVERRIDE ...] [--mm-overrides OVERRIDE ...] [--particles-overrides OVERRIDE ...]
         [--output PATH] [--no-docs] [--cache-dir DIR]
@@ -52,6 +58,7 @@ from qtl.bench import (
     command_line,
     commit,
     display_path,
+    kinematic,
     machine,
     markdown_table,
     peak_rss_mib,
@@ -204,6 +211,8 @@ def measure(job: dict[str, Any]) -> dict[str, Any]:
             # -- Everything as the loop makes it (qtl.build), from the composed config. ----------------
             cfg = compose_config(job["propagator"], job["dtype"],
                                  [*job["overrides"], *variant_overrides(job), f"device={job['device']}"])
+            if "integration" in job:  # the step, and the task's kinematics where known but undeclared
+                cfg = kinematic.with_integration(cfg, job["integration"])
             seed_everything(cfg.seed)
             parts = build(cfg)
             task, reward, start, make_propagator = parts.task, parts.reward, parts.start, parts.make_propagator
@@ -258,7 +267,7 @@ def measure(job: dict[str, Any]) -> dict[str, Any]:
 
 
 # What a comparison job adds to a job: the exp-sum backend, whether the restarts are batched, the formulation.
-_VARIANT_KEYS = ("backend", "batched", "moments")
+_VARIANT_KEYS = ("backend", "batched", "moments", "integration")
 
 
 def variant_overrides(job: dict[str, Any]) -> list[str]:
@@ -457,6 +466,52 @@ def compare_only_markdown(info: dict[str, Any], comparison: list[dict[str, Any]]
     ])
 
 
+def measure_aircraft(job: dict[str, Any]) -> dict[str, Any]:
+    """The aircraft round under both steps in this process; a failure is recorded, not raised."""
+    torch.set_num_threads(job["threads"])
+    overrides = [*job["overrides"], f"model.sparse_above={job['inducing']}", f"model.inducing={job['inducing']}",
+                 f"device={job['device']}"]
+    try:
+        return kinematic.aircraft_rounds(overrides, job["seed"], job["repeats"]) | {"peak_rss_mib": peak_rss_mib()}
+    except Exception as err:  # a benchmark records what failed and goes on
+        return {"error": f"{type(err).__name__}: {err}"}
+
+
+def compare_integration(args: argparse.Namespace) -> None:
+    """Full-state vs kinematic moment matching: cart-pole searches per n, one aircraft round; JSON and section."""
+    suffix = "_integration" + ("" if resolve_device(args.device).type == "cpu" else f"-{args.device}")
+    output = (args.output or DEFAULT_OUTPUT.with_stem(DEFAULT_OUTPUT.stem + suffix)).resolve()
+    data_cfg = compose_config("moment_matching", "float64", args.overrides)
+    rows, models = [], {}
+    for n in args.compare_sizes:
+        path, models[n] = ensure_model(data_cfg, n, args.seed, args.cache_dir)
+        for integration in kinematic.INTEGRATIONS:
+            job = {"propagator": "moment_matching", "n": n, "dtype": "float64", "model": str(path),
+                   "overrides": [*args.overrides, *args.mm_overrides], "threads": args.threads,
+                   "device": args.device, "repeats": args.repeats, "skip_search": args.skip_search,
+                   "integration": integration}
+            rows.append(run_job(job))
+            print(json.dumps({k: v for k, v in rows[-1].items() if k not in ("propagation", "optimizer")}),
+                  file=sys.stderr, flush=True)
+    aircraft = None
+    if args.aircraft_inducing > 0:
+        job = {"aircraft": True, "inducing": args.aircraft_inducing, "overrides": args.aircraft_overrides,
+               "threads": args.threads, "device": args.device, "repeats": args.repeats, "seed": args.seed}
+        aircraft = run_job(job)
+        print(json.dumps(aircraft), file=sys.stderr, flush=True)
+    info = {"date": today(), "commit": commit(), "command": command_line(), "machine": machine(),
+            "threads": args.threads, "device": args.device, "output": display_path(output),
+            "models": {str(n): m for n, m in models.items()}, "aircraft": aircraft}
+    write_results(output, info, rows)
+    m = info["machine"]
+    section = "\n".join([f"`{info['command']}` at commit {info.get('commit', '?')} — {info['date']}, {m['cpu']} "
+                         f"({m['cores']} cores), {args.threads} torch threads, torch {m['torch']}. "
+                         f"Results: `{info['output']}`.", "", *kinematic.markdown(rows, aircraft)])
+    if not args.no_docs:
+        write_section(SECTION + suffix, section)
+    print(section)
+
+
 def main() -> None:
     """Fit (or load) one model per n, run every configuration in its own subprocess; write JSON and markdown."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -478,6 +533,12 @@ def main() -> None:
                              f"{variant_name(BASELINE_VARIANT)} always runs too); default: all")
     parser.add_argument("--compare-only", action="store_true",
                         help="only the backend x restarts comparison (its own JSON and docs section: *_compare)")
+    parser.add_argument("--compare", choices=["integration"],
+                        help="integration: only full-state vs kinematic moment matching (issue 63), at --compare-sizes")
+    parser.add_argument("--aircraft-inducing", type=int, default=300,
+                        help="--compare integration: the aircraft round's inducing inputs m (0: no aircraft round)")
+    parser.add_argument("--aircraft-overrides", nargs="*", default=[],
+                        help="--compare integration: Hydra overrides of the aircraft stage (e.g. a smaller fit)")
     parser.add_argument("--overrides", nargs="*", default=[], help="Hydra overrides for every configuration")
     parser.add_argument("--mm-overrides", nargs="*", default=[], help="Hydra overrides for moment matching only")
     parser.add_argument("--particles-overrides", nargs="*", default=[], help="Hydra overrides for particles only")
@@ -487,7 +548,11 @@ def main() -> None:
     parser.add_argument("--worker", help=argparse.SUPPRESS)  # child process: one configuration, as JSON
     args = parser.parse_args()
     if args.worker:
-        print(json.dumps(measure(json.loads(args.worker))))
+        job = json.loads(args.worker)
+        print(json.dumps(measure_aircraft(job) if job.get("aircraft") else measure(job)))
+        return
+    if args.compare == "integration":
+        compare_integration(args)
         return
 
     torch.set_num_threads(args.threads)

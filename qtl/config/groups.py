@@ -21,6 +21,8 @@ BATCHED_HELP = ("all restarts at once: one batched rollout evaluates every runni
 SPACE_HELP = "log | natural: the space θ is handled in"
 INDUCING_HELP = "inducing inputs of the sparse GP (PILCO's FITC uses ~300)"
 INDUCING_JITTER_HELP = "the sparse GP's jitter on K_mm's diagonal, a fraction of α² (0: none)"
+INTEGRATION_HELP = ("delta | speed: x + Δ in every dimension, or the GP's Δ of the velocities (and other non-position "
+                    "dims) with positions integrated, q + T q̇ + (T/2) Δq̇ (MC-PILCO; task.kinematics)")
 
 
 @dataclass
@@ -29,6 +31,10 @@ class MomentMatchingConfig(PropagationConfig):
 
     _target_: str = "qtl.propagation.MomentMatching"
     include_noise: bool = field(default=False, metadata=doc("add the GP's noise variance to every predicted state"))
+    integration: str = field(
+        default="delta", metadata=doc(INTEGRATION_HELP + "; speed evaluates the GP on the modelled outputs only "
+                                      "(fewer output pairs: faster), its moments exact"),
+    )
 
 
 @dataclass
@@ -73,10 +79,7 @@ class ParticlesConfig(PropagationConfig):
                                         "task's declared search_reward (angle/position cost, as MC-PILCO's), or that "
                                         "when the task declares one"),
     )
-    integration: str = field(
-        default="delta", metadata=doc("delta | speed: x + Δ in every dimension, or the GP's Δ of the velocities "
-                                      "with positions integrated, q + T q̇ + (T/2) Δq̇ (MC-PILCO; task.kinematics)"),
-    )
+    integration: str = field(default="delta", metadata=doc(INTEGRATION_HELP))
     search_start_scale: float = field(
         default=1.0, metadata=doc("the search's start spread: N(μ_0, s² Σ_0), s in (0, 1] (lower gradient variance "
                                   "on chaotic rollouts; predictions keep the task's start)"),

@@ -77,7 +77,7 @@ class SearchRewardConfig:
 
 @dataclass
 class KinematicsConfig:
-    """Which state dimensions are positions and which their velocities (particles' speed integration)."""
+    """Which state dimensions are positions and which their velocities (speed integration, propagation.integration)."""
 
     positions: list[int] = field(default=MISSING, metadata=doc("state indices of the positions q"))
     velocities: list[int] = field(default=MISSING, metadata=doc("state indices of their velocities q̇, in order"))

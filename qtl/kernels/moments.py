@@ -14,7 +14,7 @@ import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
-from qtl.gaussian import Gaussian, MomentMatch, batch_matmul, full_batch, identity, symmetrize
+from qtl.gaussian import Gaussian, MomentMatch, batch_matmul, cholesky, full_batch, identity, nan_where, symmetrize
 from qtl.kernels.engine import DEFAULT_ENGINE, Engine
 from qtl.kernels.exp_sum import weighted_exp_sum
 from qtl.kernels.native.se_moments import native_fits, se_kernel_moments
@@ -26,29 +26,31 @@ class _InverseHalfLogdet(torch.autograd.Function):
     The backward pass is the closed form d(M⁻¹) = −M⁻¹ dM M⁻¹, d(½ log|M|) = ½ tr(M⁻¹ dM),
     symmetrized as torch's Cholesky backward is: a few matrix products instead of the graph
     of a factorisation, its solves and a log-determinant. A non-positive-definite M raises
-    ``torch.linalg.LinAlgError``, as ``torch.linalg.cholesky`` does.
+    ``torch.linalg.LinAlgError``, as ``torch.linalg.cholesky`` does, or inside
+    :func:`qtl.gaussian.element_failures` makes its element's results (and gradients) NaN; ``inner``: the
+    trailing batch dimensions of one element (:func:`qtl.gaussian.cholesky`).
     """
 
     @staticmethod
-    def forward(ctx, mat: Tensor) -> tuple[Tensor, Tensor]:  # type: ignore[override]
-        chol = torch.linalg.cholesky(mat)
-        inverse = torch.cholesky_inverse(chol)  # exactly symmetric
+    def forward(ctx, mat: Tensor, inner: int) -> tuple[Tensor, Tensor]:  # type: ignore[override]
+        chol, failed = cholesky(mat, inner)
+        inverse = nan_where(failed, torch.cholesky_inverse(chol))  # exactly symmetric
         ctx.save_for_backward(inverse)
-        return inverse, torch.diagonal(chol, dim1=-2, dim2=-1).log().sum(-1)
+        return inverse, nan_where(failed, torch.diagonal(chol, dim1=-2, dim2=-1).log().sum(-1))
 
     @staticmethod
     @once_differentiable
-    def backward(ctx, grad_inverse: Tensor, grad_half_logdet: Tensor) -> Tensor:  # type: ignore[override]
+    def backward(ctx, grad_inverse: Tensor, grad_half_logdet: Tensor) -> tuple[Tensor, None]:  # type: ignore[override]
         (inverse,) = ctx.saved_tensors
         flat = inverse.reshape(-1, *inverse.shape[-2:])
         sandwich = torch.bmm(torch.bmm(flat, grad_inverse.reshape(flat.shape)), flat).view(inverse.shape)
         grad = torch.addcmul(-sandwich, inverse, 0.5 * grad_half_logdet[..., None, None])
-        return symmetrize(grad)
+        return symmetrize(grad), None
 
 
-def inverse_and_half_logdet(mat: Tensor) -> tuple[Tensor, Tensor]:
+def inverse_and_half_logdet(mat: Tensor, inner: int = 0) -> tuple[Tensor, Tensor]:
     """M⁻¹ `... x D x D` and ½ log|M| `...` of symmetric positive-definite ``mat`` (one Cholesky factorisation)."""
-    return _InverseHalfLogdet.apply(mat)
+    return _InverseHalfLogdet.apply(mat, inner)
 
 
 class SEKernelMoments:
@@ -171,7 +173,7 @@ class SEKernelMoments:
         nu = self._inputs - mean[..., None, None, :]  # ... x 1 x n x D, x_i − μ
 
         # B_a (mean, per output a) and R̃_ab (second moments, per pair), diag(c) Σ diag(c) + I, inverted at once.
-        inverses, half_logdets = inverse_and_half_logdet(self._scales_outer * cov[..., None, :, :] + eye)
+        inverses, half_logdets = inverse_and_half_logdet(self._scales_outer * cov[..., None, :, :] + eye, 1)
         num_out = self.num_out
 
         # Mean and input–output covariance, per output a.
@@ -219,9 +221,9 @@ class SEKernelMoments:
         inv_ls = self.inv_ls
         scaled = nu * inv_ls[..., :, None, :]  # ... x E x n x D, Λ_a^{-1/2}(x_i − μ)
         b_mat = inv_ls[..., :, :, None] * cov[..., None, :, :] * inv_ls[..., :, None, :] + eye
-        chol_b = torch.linalg.cholesky(b_mat)  # ... x E x D x D
+        chol_b, failed_b = cholesky(b_mat, 1)  # ... x E x D x D; a failed element: NaN from its log-determinant on
         solved = torch.cholesky_solve(scaled.mT, chol_b).mT  # B⁻¹ Λ^{-1/2} ν
-        half_logdet_b = torch.diagonal(chol_b, dim1=-2, dim2=-1).log().sum(-1)
+        half_logdet_b = nan_where(failed_b, torch.diagonal(chol_b, dim1=-2, dim2=-1).log().sum(-1))
         # q_ai = α_a² |B_a|^{-1/2} exp(−½ ν_iᵀ(Σ + Λ_a)⁻¹ν_i) = E[k_a(x_i, x)].
         log_q = (self.log_sf2 - half_logdet_b)[..., None] - 0.5 * (scaled * solved).sum(-1)
         bq = self.beta * log_q.exp()  # ... x E x n
@@ -231,8 +233,8 @@ class SEKernelMoments:
         # Second moments of all unordered output pairs at once (PILCO's Q matrices).
         inv_a, inv_b, scale = self.inv_ls2_a, self.inv_ls2_b, self.scale_ab
         scaled_cov = scale[..., :, None] * cov[..., None, :, :] * scale[..., None, :]
-        chol_r = torch.linalg.cholesky(scaled_cov + eye)  # R̃ = D Σ D + I, D = √(Λ_a⁻¹ + Λ_b⁻¹)
-        half_logdet_r = torch.diagonal(chol_r, dim1=-2, dim2=-1).log().sum(-1)  # ... x P
+        chol_r, failed_r = cholesky(scaled_cov + eye, 1)  # R̃ = D Σ D + I, D = √(Λ_a⁻¹ + Λ_b⁻¹)
+        half_logdet_r = nan_where(failed_r, torch.diagonal(chol_r, dim1=-2, dim2=-1).log().sum(-1))  # ... x P
         # X = R̃⁻¹ D Σ D, so that ½ zᵀ R⁻¹ Σ z = ½ (D⁻¹z)ᵀ X (D⁻¹z) with z = Λ_a⁻¹ν_i + Λ_b⁻¹ν_j.
         x_mat = symmetrize(torch.cholesky_solve(scaled_cov, chol_r))
         left = nu * (inv_a / scale)[..., :, None, :]  # ... x P x n x D, D⁻¹Λ_a⁻¹ν_i

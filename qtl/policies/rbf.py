@@ -8,7 +8,7 @@ from collections.abc import Callable
 import torch
 from torch import Tensor, nn
 
-from qtl.gaussian import GaussianMap
+from qtl.gaussian import GaussianMap, cholesky, nan_where
 from qtl.kernels import SEKernelMoments
 from qtl.kernels.engine import DEFAULT_ENGINE, Engine
 from qtl.policies.base import Policy
@@ -98,8 +98,8 @@ class RBFPolicy(Policy):
         sq_dist = (scaled[..., :, None, :] - scaled[..., None, :, :]).square().sum(-1)
         gram = POLICY_SIGNAL_VARIANCE * torch.exp(-0.5 * sq_dist)
         gram = gram + POLICY_NOISE_VARIANCE * torch.eye(self.num_basis, dtype=gram.dtype, device=gram.device)
-        chol = torch.linalg.cholesky(gram)
-        return torch.cholesky_solve(self.targets.mT[..., None], chol).squeeze(-1)
+        chol, failed = cholesky(gram)  # not positive-definite: raises, or NaN (qtl.gaussian.element_failures)
+        return nan_where(failed, torch.cholesky_solve(self.targets.mT[..., None], chol).squeeze(-1))
 
     def forward(self, x: Tensor) -> Tensor:
         """Actions `... x F` for features `... x D` (Eq. 5); batched ψ: `R x S x F` for `R x S x D`."""

@@ -2,6 +2,9 @@
 
 A restart whose evaluation is not finite, or whose rollout fails alone, leaves the batch: the
 evaluations name such restarts in what they return, and :meth:`RestartBatch.drop` removes them.
+The batched rollout runs inside :func:`qtl.gaussian.element_failures`: a factorisation that fails for
+one restart (a covariance not positive-definite) makes that restart's value NaN, and the others' values
+and gradients are those they have without it; only what still raises re-evaluates each restart alone.
 """
 
 from __future__ import annotations
@@ -15,6 +18,7 @@ import torch
 from torch import Tensor, nn
 
 from qtl import health
+from qtl.gaussian import element_failures
 from qtl.lbfgs import INVALID, Evaluation
 from qtl.policies import Policy, psi_names, set_psi, stack_psi
 from qtl.policy_search.evaluation import INVALID_PSI_ERRORS, count_failure
@@ -101,14 +105,16 @@ class RestartBatch:
     def evaluate_each(self, objective: Callable[[], Tensor]) -> list[Evaluation]:
         """(−V_r, −∂V_r/∂ψ_r flattened `n`) of each active restart from one rollout; INVALID where either is not finite.
 
-        Each finite value is offered as its restart's best. When the batched rollout fails
-        numerically, each restart is evaluated alone (as the sequential search would).
+        Each finite value is offered as its restart's best. A restart whose factorisation failed has a NaN
+        value (counted as a linalg failure). When the batched rollout still raises numerically, each restart
+        is evaluated alone (as the sequential search would).
         """
         self.rollouts += 1
         for restart in self.active:
             self.calls[restart] += 1
         try:
-            values = objective()
+            with element_failures() as failures:
+                values = objective()
             self._check_shape(values)
             (-values.sum()).backward()
         except INVALID_PSI_ERRORS as err:
@@ -117,15 +123,19 @@ class RestartBatch:
             alone = self._alone(objective)
             return [self._answer(position, value, grad) for position, (value, grad) in enumerate(alone)]
         params = self.trainable()
-        return [self._answer(position, values[position].detach(), flat_grad(params, position))
+        return [self._answer(position, values[position].detach(), flat_grad(params, position), bool(failures))
                 for position in range(len(self.active))]
 
-    def _answer(self, position: int, value: Tensor | None, grad: Tensor | None) -> Evaluation:
-        """The evaluation an optimiser receives for the restart at ``position``; a finite value is offered."""
+    def _answer(self, position: int, value: Tensor | None, grad: Tensor | None, linalg: bool = False) -> Evaluation:
+        """The evaluation an optimiser receives for the restart at ``position``; a finite value is offered.
+
+        ``linalg``: a factorisation failed in the rollout, so that a value that is not finite counts as a
+        linalg failure.
+        """
         if value is None or grad is None:  # failed alone: counted there
             return INVALID
         if not bool(torch.isfinite(value)):
-            health.count(health.NONFINITE)
+            health.count(health.LINALG if linalg else health.NONFINITE)
             return INVALID
         self._offer(position, float(value))
         if not bool(torch.isfinite(grad).all()):
@@ -141,14 +151,16 @@ class RestartBatch:
     def evaluate(self, objective: Callable[[], Tensor]) -> Values:
         """V `R'` of the active restarts in one rollout, each finite value offered as its restart's best.
 
-        Its ``failing`` names the restarts whose value is not finite, or, when the batched rollout
-        fails numerically, those that fail alone when re-evaluated one by one (``values`` None then).
+        Its ``failing`` names the restarts whose value is not finite (a failed factorisation makes it NaN,
+        counted as a linalg failure), or, when the batched rollout still raises numerically, those that fail
+        alone when re-evaluated one by one (``values`` None then).
         """
         self.rollouts += 1
         for restart in self.active:
             self.calls[restart] += 1
         try:
-            values = objective()
+            with element_failures() as failures:
+                values = objective()
         except INVALID_PSI_ERRORS as err:
             count_failure(err)
             log.info("batched policy search: the rollout failed (%s); re-evaluating each restart", err)
@@ -159,7 +171,7 @@ class RestartBatch:
             if finite[position]:
                 self._offer(position, float(values[position].detach()))
         if not finite.all():
-            health.count(health.NONFINITE, int((~finite).sum()))
+            health.count(health.LINALG if failures else health.NONFINITE, int((~finite).sum()))
             return Values(values, (~finite).nonzero().flatten().tolist())
         return Values(values, [])
 

@@ -12,6 +12,11 @@ contain uncertainty about the function, but no noise"): σ_ε² is treated as me
 of the training targets and is not propagated. ``include_noise=True`` adds diag(σ_ε²) to the
 covariance of Δ at every step instead.
 
+Integration (``integration``, :mod:`qtl.propagation.integration`): ``delta`` steps x_{t+1} = x_t + Δ in every
+dimension; ``speed`` evaluates the GP on the E' modelled outputs only (all but the positions) and steps
+x_{t+1} = x_t A + Δ J (positions by the trapezoid rule from their velocities), whose moments under the joint
+Gaussian of (x_t, Δ) are exact: μ A + μ_Δ J and Aᵀ Σ A + Jᵀ Σ_Δ J + Aᵀ C J + (Aᵀ C J)ᵀ, C = cov[x_t, Δ].
+
 Formulations (``engine.moments``, :class:`qtl.kernels.Engine`): ``reference`` symmetrizes each step's covariance;
 ``fused`` keeps it exactly symmetric by construction (the start's is symmetrized once) and skips
 the input–output covariance of Δ, which the step does not use.
@@ -24,13 +29,16 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
+from qtl.errors import UserError
 from qtl.gaussian import Gaussian, GaussianMap, MomentMatch, batch_matmul, full_batch, symmetrize
 from qtl.kernels import SEKernelMoments
 from qtl.kernels.engine import DEFAULT_ENGINE, Engine
 from qtl.policies.base import Policy
 from qtl.propagation.base import DynamicsSource, Rollout
 from qtl.propagation.gp_cache import propagation_inputs
+from qtl.propagation.integration import INTEGRATION, DeltaIntegration, LinearIntegration, make_integration
 from qtl.rewards import ExpectedSaturatingReward
+from qtl.task import Kinematics
 
 
 class MomentMatching:
@@ -44,8 +52,16 @@ class MomentMatching:
     ``reward``: scores the successor states. ``angle_dims``: the dynamics' angle dimensions.
     ``dtype``: of the propagation (default: the cache's); the policy must share it, start
     distributions are converted. ``engine``: the code that computes every moment (features, policy,
-    GP, reward; ``qtl.build`` resolves it from ``kernels.*``).
+    GP, reward; ``qtl.build`` resolves it from ``kernels.*``). ``integration``: ``delta`` (x + Δ), ``speed`` (the
+    GP's modelled outputs only, positions integrated from their velocities; needs ``kinematics``: positions,
+    velocities, period T) or a :class:`~qtl.propagation.integration.LinearIntegration` (its A, J and outputs).
     """
+
+    @staticmethod
+    def check_settings(integration: str = "delta", **_: object) -> None:
+        """The settings, checked before any work (``qtl.build`` calls it): a UserError naming what to fix."""
+        if integration not in INTEGRATION:
+            raise UserError(f"propagation.integration must be one of {', '.join(INTEGRATION)}, got {integration!r}")
 
     def __init__(
         self,
@@ -55,17 +71,30 @@ class MomentMatching:
         *,
         angle_dims: Sequence[int] = (),
         include_noise: bool = False,
+        integration: str | LinearIntegration = "delta",
+        kinematics: Kinematics | None = None,
         dtype: torch.dtype | None = None,
         engine: Engine = DEFAULT_ENGINE,
     ) -> None:
+        if isinstance(integration, str):
+            self.check_settings(integration=integration)
+            if integration == "speed" and kinematics is None:
+                raise UserError("propagation.integration=speed needs the task's kinematics: add task.kinematics "
+                                "(positions, velocities) or set propagation.integration=delta")
         data, self.features, self.dtype = propagation_inputs(model, policy, reward, angle_dims, dtype)
         self.engine = engine
         self.state_dim = self.features.state_dim
+        # The step x_{t+1} = x_t + Δ, or x_t A + Δ J with the GP evaluated on the modelled outputs only.
+        self.integration: DeltaIntegration | LinearIntegration = (
+            make_integration(integration, self.state_dim, kinematics, self.dtype, data["beta"].device)
+            if isinstance(integration, str) else integration
+        )
+        data = self.integration.select_outputs(data)
         self.policy = policy
         self.reward = reward
         self.include_noise = include_noise
-        self.noise_variance = data["noise_variance"]  # ... x E
-        self._noise_cov = torch.diag_embed(self.noise_variance)
+        self.noise_variance = data["noise_variance"]  # ... x E (E': the modelled outputs)
+        self._noise_cov = self.integration.covariance(self.noise_variance)  # diag(σ_ε²), or Jᵀ diag(σ_ε²) J
         # Everything that depends only on data and θ is computed here, once.
         self.dynamics = SEKernelMoments(
             data["inputs"], data["beta"], data["lengthscales"], data["signal_variance"], data["K_inv"], engine=engine
@@ -84,6 +113,9 @@ class MomentMatching:
         # cov[x, [y u]] = [cov[x, y], cov[x, y] Σ_y⁻¹ cov[y, u]], then cov[x, Δ] likewise.
         cov_x_in = torch.cat([feats.cross_cov, batch_matmul(feats.cross_cov, act.gain)], dim=-1)
         cov_x_delta = batch_matmul(cov_x_in, delta_gain)
+        # The summands of x_{t+1}: x_t and Δ, or x_t A and Δ J (speed integration).
+        mean, cov, delta_mean, delta_cov, cov_x_delta = self.integration.moment_terms(
+            mean, cov, delta_mean, delta_cov, cov_x_delta)
         # Σ and cov Δ are exactly symmetric, and so is each sum below: no symmetrize needed.
         next_cov = (cov + delta_cov) + (cov_x_delta + cov_x_delta.mT)
         if self.include_noise:
@@ -100,10 +132,13 @@ class MomentMatching:
         # cov[x, [y u]] = [cov[x, y], cov[x, y] Σ_y⁻¹ cov[y, u]], then cov[x, Δ] likewise.
         cov_x_in = torch.cat([feats.cross_cov, feats.cross_cov @ act.gain], dim=-1)
         cov_x_delta = cov_x_in @ delta.gain
-        next_cov = cov + delta.cov + cov_x_delta + cov_x_delta.mT
+        # The summands of x_{t+1}: x_t and Δ, or x_t A and Δ J (speed integration).
+        mean, cov, delta_mean, delta_cov, cov_x_delta = self.integration.moment_terms(
+            mean, cov, delta.mean, delta.cov, cov_x_delta)
+        next_cov = cov + delta_cov + cov_x_delta + cov_x_delta.mT
         if self.include_noise:
-            next_cov = next_cov + torch.diag_embed(self.noise_variance)
-        return Gaussian(mean + delta.mean, symmetrize(next_cov)), act
+            next_cov = next_cov + self._noise_cov
+        return Gaussian(mean + delta_mean, symmetrize(next_cov)), act
 
     def _with_policy_batch(self, state: Gaussian) -> Gaussian:
         """``state`` in the propagation's dtype, its batch broadcast against a batched policy's (`R`, restarts).

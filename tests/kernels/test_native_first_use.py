@@ -109,3 +109,14 @@ def test_an_unwritable_cache_takes_the_torch_path(monkeypatch, caplog, tmp_path)
         assert Engine.resolve("auto", "reference") == Engine(exp_sums="torch")
     assert [r.getMessage().count("QTL_CACHE_DIR") for r in caplog.records] == [1]
     assert not artefact.artefact_path().exists()
+
+
+def test_a_build_clears_what_a_crashed_build_left(monkeypatch, tmp_path):
+    """A build killed between compile and check leaves ``*.unchecked.so``; the next lock holder removes it."""
+    monkeypatch.setenv("QTL_CACHE_DIR", str(tmp_path))
+    target = artefact.artefact_path()
+    target.parent.mkdir(parents=True)
+    crashed = target.with_name(f"{target.stem}.99999999.unchecked.so")
+    crashed.write_bytes(b"half a library")
+    assert native_build.build() == target and target.is_file()
+    assert not crashed.exists() and not list(target.parent.glob("*.unchecked.so"))

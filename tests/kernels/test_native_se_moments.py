@@ -6,7 +6,7 @@ import pytest
 import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 
-from qtl.gaussian import Gaussian
+from qtl.gaussian import Gaussian, element_failures
 from qtl.kernels import SEKernelMoments
 from qtl.kernels.engine import Engine
 from qtl.kernels.native import build as native_build
@@ -216,6 +216,42 @@ def test_not_positive_definite_raises_like_cholesky(library):
     for engine in (FUSED, NATIVE):
         with pytest.raises(torch.linalg.LinAlgError):
             moments._fused_call(leaves["mean"].detach(), cov, engine)
+
+
+@pytest.mark.parametrize("with_k_inv", [True, False], ids=["gp0", "gp2"])
+@pytest.mark.parametrize("beta_grad", [False, True], ids=["forward-keeps", "recomputes"])
+def test_a_failing_item_is_nan_and_the_others_as_without_it(library, with_k_inv, beta_grad):
+    """Inside element_failures, item 1 of 3 not positive-definite: NaN outputs and gradients there, natively as in
+    torch (a broadcast operand's gradient sums it: NaN); the other items' outputs and gradients native equal to
+    fused, and bit for bit those of the batch where item 1 does not fail."""
+    results = {}
+    for flip in (-1.0, 1.0):
+        leaves, k_inv = make_problem(3, 4, 9, (3,), (), seed=5)
+        leaves["beta"].requires_grad_(beta_grad)
+        cov = leaves["cov"].detach().clone()
+        cov[1] *= flip
+        leaves["cov"] = cov.requires_grad_()
+        for engine in (FUSED, NATIVE):
+            with element_failures() as masks:
+                outs, grads = outputs_and_grads(leaves, k_inv if with_k_inv else None, engine, None)
+            assert bool(masks) == (flip < 0)
+            results[flip, engine.moments] = outs, dict(zip([k for k, v in leaves.items() if v.requires_grad], grads,
+                                                           strict=True))
+    good = [0, 2]
+    (native_outs, native_grads), (fused_outs, fused_grads) = results[-1.0, "native"], results[-1.0, "fused"]
+    clean_outs, clean_grads = results[1.0, "native"]
+    for what, got, want, clean in zip(("mean", "cov", "gain"), native_outs, fused_outs, clean_outs, strict=True):
+        assert got[1].isnan().all() and want[1].isnan().all(), what
+        assert_rel_close(got[good], want[good], what, rtol=RTOL)
+        assert torch.equal(got[good], clean[good]), what
+    for name, got in native_grads.items():
+        want = fused_grads[name]
+        if name in ("mean", "cov"):  # per item
+            assert got[1].isnan().all() and want[1].isnan().all(), name
+            assert_rel_close(got[good], want[good], f"∂/∂{name}", rtol=RTOL)
+            assert torch.equal(got[good], clean_grads[name][good]), name
+        else:  # broadcast over the items: the failed one's NaN is in the sum
+            assert got.isnan().all() and want.isnan().all(), name
 
 
 class _OpCounter(TorchDispatchMode):

@@ -4,11 +4,17 @@ from __future__ import annotations
 
 import math
 
+import pytest
 import torch
 
 from qtl import health
+from qtl.lbfgs import INVALID
 from qtl.policy_search.batch import RestartBatch
 from tests.policy_search.problems import BowlPolicy, lbfgs
+from tests.propagation.failing import BAD, ENGINES, HORIZON, restart_states, solo, system
+
+# The good restarts of a batch against their rollouts alone: the same maths, another batch size.
+SOLO_RTOL = 1e-10
 
 
 def open_batch(restarts: int = 3) -> tuple[BowlPolicy, RestartBatch]:
@@ -69,4 +75,39 @@ def test_gradients_that_are_not_finite_name_their_restarts():
         p.grad = None
     policy.value().sum().backward()
     assert batch.nonfinite_gradients() == []
+    batch.close()
+
+
+@pytest.mark.parametrize("moments", ENGINES)
+def test_a_restart_that_fails_a_factorisation_leaves_alone_the_others_batched(moments, monkeypatch):
+    """One restart's covariance is not positive-definite: INVALID for it (one linalg failure counted), the others'
+    answers those of their rollouts alone, and no restart is evaluated alone."""
+    policy, propagator, start = system(moments)
+    states = restart_states(policy)
+    monkeypatch.setattr(RestartBatch, "_alone", lambda *_: pytest.fail("evaluated each restart alone"))
+    batch = RestartBatch(policy, states)
+    health.take()
+    answers = batch.evaluate_each(lambda: propagator.expected_return(start, HORIZON))
+    batch.close()
+    counts = health.take()
+    assert counts[health.LINALG] == 1 and counts[health.NONFINITE] == 0
+    assert answers[BAD] is INVALID and batch.rollouts == 1 and batch.best_value[BAD] == -math.inf
+    for position in (0, 2):
+        value, grad = solo(policy, propagator, start, states[position])
+        loss, minus_grad = answers[position]
+        torch.testing.assert_close(loss, -float(value), rtol=SOLO_RTOL, atol=0)
+        torch.testing.assert_close(-minus_grad, grad, rtol=SOLO_RTOL, atol=SOLO_RTOL * float(grad.abs().max()))
+
+
+def test_a_restart_that_fails_a_factorisation_is_named_by_a_batched_evaluation(monkeypatch):
+    """Adam's evaluation: the failing restart is named (a linalg failure), the others' values offered."""
+    policy, propagator, start = system("fused")
+    monkeypatch.setattr(RestartBatch, "_alone", lambda *_: pytest.fail("evaluated each restart alone"))
+    batch = RestartBatch(policy, restart_states(policy))
+    health.take()
+    values, failing = batch.evaluate(lambda: propagator.expected_return(start, HORIZON))
+    assert failing == [BAD] and values is not None and health.take()[health.LINALG] == 1
+    assert batch.drop(failing) == [0, 2]
+    values, failing = batch.evaluate(lambda: propagator.expected_return(start, HORIZON))  # the others go on
+    assert failing == [] and values.shape == (2,) and health.take()[health.LINALG] == 0
     batch.close()

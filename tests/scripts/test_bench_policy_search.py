@@ -123,3 +123,24 @@ def test_an_unknown_variant_is_refused_in_one_line_before_any_measurement(tmp_pa
     assert done.returncode == 2
     assert "unknown --variants native/batched/nope: choose from torch/sequential/reference" in done.stderr
     assert not output.exists() and not (tmp_path / "cache").exists()
+
+
+def test_smallest_integration_comparison_times_delta_and_speed_on_the_same_model(tmp_path: Path) -> None:
+    """``--compare integration``: delta and speed searches at n = 60 and one aircraft round of each, ratios."""
+    done, report = run_tiny(tmp_path, "--compare", "integration", "--aircraft-inducing", "20", "--aircraft-overrides",
+                            "model.restarts=1", "model.max_iter=3", "task.horizon=10", "task.success.last_steps=3",
+                            "optimizer.max_iter=2")
+    rows = {r["integration"]: r for r in report["results"]}
+    assert sorted(rows) == ["delta", "speed"]
+    for integration, row in rows.items():
+        assert "error" not in row, row["error"]
+        assert row["propagation"]["integration"] == integration and row["n"] == 60
+        assert row["search_s"] > 0 and row["rollout_grad_s_median"] > 0
+    # The same data and ψ_0; the positions' model differs, and so does the predicted return.
+    assert rows["delta"]["value_initial"] != rows["speed"]["value_initial"]
+    aircraft = report["aircraft"]
+    assert "error" not in aircraft, aircraft["error"]
+    assert aircraft["model"] == "sparse" and aircraft["inducing"] == 20 and aircraft["state_dim"] == 12
+    assert aircraft["kinematics"]["positions"] == [0, 1, 2, 3, 4, 5]
+    assert aircraft["round_ratio"] == aircraft["delta"]["round_s"] / aircraft["speed"]["round_s"]
+    assert "### Full-state vs kinematic moment matching" in done.stdout and "Aircraft (quadcopter" in done.stdout

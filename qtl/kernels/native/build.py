@@ -135,6 +135,8 @@ def build(force: bool = False) -> Path:
     with exclusive(target.parent / LOCK_NAME):
         if target.is_file() and not force:
             return target  # another process built it while this one waited
+        for stale in target.parent.glob("*.unchecked.so"):  # left by a build that crashed: only the lock holder builds
+            stale.unlink(missing_ok=True)
         tic = time.perf_counter()
         candidate = target.with_name(f"{target.stem}.{os.getpid()}.unchecked.so")
         try:

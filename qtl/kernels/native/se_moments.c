@@ -34,6 +34,12 @@
  * gain, operands, adjoint: O((E + P) n D²)) runs item by item; the n x n sums, the bulk, run in
  * parallel in exp_sum.c with the thread count passed per call.
  *
+ * Failure per item: where a B_a or R_p of an item is not positive definite, the forward pass with a
+ * `failed` buffer (`items` flags) flags that item, makes its mean, covariance and gain NaN (its exp-sum
+ * operands zero) and goes on with the others; the backward pass, given the same flags, adds NaN to every
+ * gradient the item reaches, as the torch twin's NaN does. Without the buffer (NULL) such an item
+ * ends the call with STATUS_NOT_PD, as before.
+ *
  * Build: with exp_sum.c into one library (qtl/kernels/native/build.py):
  *   gcc -O3 -march=native -fno-math-errno -fopenmp -fPIC -shared -Wall -Wextra *.c -lm
  */
@@ -54,7 +60,7 @@ int qtl_exp_sum_backward(const double *a, const double *b, const double *w, cons
 
 enum { MEAN, COV, INPUTS, BETA, INV_LS, LOG_SF2, WEIGHTS, OPERANDS };
 enum { GRAD_MEAN, GRAD_COV, GRAD_GAIN, GRAD_OUTS };
-enum { STATUS_OK = 0, STATUS_NO_MEMORY = 1, STATUS_NOT_PD = 2 };
+enum { STATUS_OK = 0, STATUS_NO_MEMORY = 1, STATUS_NOT_PD = 2, STATUS_ITEMS_FAILED = 3 };
 
 /* The problem's sizes: items in the batch, n inputs, D input dims, E outputs, P pairs, K = D + 2. */
 struct sizes {
@@ -244,6 +250,13 @@ static void item_mean_gain(const struct sizes *sz, const struct item *it, const 
     }
 }
 
+/* `count` NaNs from dst on. */
+static void fill_nan(double *dst, int64_t count)
+{
+    for (int64_t i = 0; i < count; ++i)
+        dst[i] = NAN;
+}
+
 /* X_p = I − R_p⁻¹ into x; c_a²/s_p, c_b²/s_p into left, right; c_a², c_b² into sq_a, sq_b. */
 static void pair_maps(const struct sizes *sz, const struct item *it, const struct geometry *g, int64_t p, double *x,
                       double *left, double *right, double *sq_a, double *sq_b)
@@ -367,12 +380,13 @@ static int64_t *sum_offsets(const struct sizes *sz, const int64_t *w_offsets)
 }
 
 /* work: the sums `items x p`, the means `items x e` (for the backward pass), then (with_grads) G_A
- * and G_B `items x p x n x k` each; lower_pairs: the a = b pairs' sums from their lower triangles (0:
- * every pair's full n x n sum, as before). Returns 0, 1 when memory is short, 2 when a B_a or R_p is
- * not positive definite. */
+ * and G_B `items x p x n x k` each; failed `items` (or NULL): 1 for an item whose B_a or R_p is not
+ * positive definite (its outputs NaN), else 0; lower_pairs: the a = b pairs' sums from their lower
+ * triangles (0: every pair's full n x n sum, as before). Returns 0, 1 when memory is short, 2 when a
+ * B_a or R_p is not positive definite and failed is NULL, 3 when it is and failed flags the item(s). */
 int qtl_se_moments_forward(const double *const *operand, int64_t ndim, const int64_t *batch, const int64_t *strides,
                            int64_t n, int64_t d, int64_t e, double *out_mean, double *out_cov, double *gain,
-                           double *work, int with_grads, int lower_pairs, int threads)
+                           double *work, unsigned char *failed, int with_grads, int lower_pairs, int threads)
 {
     int64_t items = 1;
     for (int64_t dim = 0; dim < ndim; ++dim)
@@ -391,6 +405,17 @@ int qtl_se_moments_forward(const double *const *operand, int64_t ndim, const int
     for (int64_t b = 0; b < items && status == STATUS_OK; ++b) {
         const struct item it = item_at(operand, offsets, items, b);
         status = item_geometry(&sz, &it, &g);
+        if (failed)
+            failed[b] = status == STATUS_NOT_PD;
+        if (status == STATUS_NOT_PD && failed) { /* NaN outputs; zero operands keep its exp sums finite */
+            status = STATUS_OK;
+            fill_nan(out_mean + b * e, e);
+            fill_nan(gain + b * d * e, d * e);
+            memset(lhs + b * sz.p * block, 0, (size_t)(sz.p * block) * sizeof(double));
+            memset(rhs + b * sz.p * block, 0, (size_t)(sz.p * block) * sizeof(double));
+            memset(hr + b * sz.p, 0, (size_t)sz.p * sizeof(double));
+            continue;
+        }
         if (status)
             break;
         item_mean_gain(&sz, &it, &g, out_mean + b * e, gain + b * d * e, vec);
@@ -411,6 +436,10 @@ int qtl_se_moments_forward(const double *const *operand, int64_t ndim, const int
                 const double *m = out_mean + b * e;
                 double *cov = out_cov + b * e * e;
                 memcpy(work + count + b * e, m, (size_t)e * sizeof(double));
+                if (failed && failed[b]) {
+                    fill_nan(cov, e * e);
+                    continue;
+                }
                 for (int64_t p = 0; p < sz.p; ++p) {
                     const int64_t a = g.pair_a[p], c = g.pair_b[p];
                     const double second = exp(-hr[b * sz.p + p]) * sums[b * sz.p + p];
@@ -419,6 +448,9 @@ int qtl_se_moments_forward(const double *const *operand, int64_t ndim, const int
                 }
             }
     }
+    for (int64_t b = 0; failed && b < items && status == STATUS_OK; ++b)
+        if (failed[b])
+            status = STATUS_ITEMS_FAILED;
     free(lower);
     free(vec);
     free(hr);
@@ -649,13 +681,25 @@ static void sum_grads(const struct sizes *sz, const struct geometry *g, const do
     }
 }
 
+/* NaN added to the gradients `gr` of a failed item, W̄ (w_grad, `p x n x n`, or NULL) included. */
+static void poison_item(const struct sizes *sz, const struct item_grads *gr, double *w_grad)
+{
+    const int64_t n = sz->n, d = sz->d, e = sz->e;
+    double *const parts[] = {gr->mean, gr->cov, gr->inputs, gr->beta, gr->inv_ls, gr->log_sf2, w_grad};
+    const int64_t sizes[] = {d, d * d, n * d, e * n, e * d, e, sz->p * n * n};
+    for (int part = 0; part < 7; ++part)
+        for (int64_t i = 0; parts[part] && i < sizes[part]; ++i)
+            parts[part][i] += NAN;
+}
+
 /* grad_out: the gradients of mean, cov, gain (NULL: none), with strides as read_output_grads reads
  * them; grad: the 7 operands' gradient buffers (NULL: not wanted; zeroed by the caller, contiguous
  * in their trailing dimensions) with batch strides `7 x ndim`; work: the forward's (sums, means),
- * fused: whether it holds G_A and G_B (else they, and W̄, are recomputed). Returns 0,
- * 1 when memory is short, 2 when a B_a or R_p is not positive definite. */
+ * failed: the forward's flags (or NULL: none failed), fused: whether work holds G_A and G_B (else
+ * they, and W̄, are recomputed). Returns 0, 1 when memory is short, 2 when a B_a or R_p of an item
+ * not flagged failed is not positive definite. */
 int qtl_se_moments_backward(const double *const *operand, int64_t ndim, const int64_t *batch, const int64_t *strides,
-                            int64_t n, int64_t d, int64_t e, const double *work, int fused,
+                            int64_t n, int64_t d, int64_t e, const double *work, const unsigned char *failed, int fused,
                             const double *const *grad_out, const int64_t *grad_out_strides, double *const *grad,
                             const int64_t *grad_strides, int threads)
 {
@@ -701,6 +745,12 @@ int qtl_se_moments_backward(const double *const *operand, int64_t ndim, const in
     /* The recomputing path: every item's operands and S̄, then the exp sums' adjoints at once. */
     double *w_bar = NULL; /* W̄ of broadcast weights, dense per item, before it is summed */
     for (int64_t b = 0; recompute && b < items && status == STATUS_OK; ++b) {
+        if (failed && failed[b]) { /* zero operands and S̄: its exp sums' adjoints are zero (poisoned below) */
+            memset(lhs + b * sz.p * block, 0, (size_t)(sz.p * block) * sizeof(double));
+            memset(rhs + b * sz.p * block, 0, (size_t)(sz.p * block) * sizeof(double));
+            memset(sum_bar + b * sz.p, 0, (size_t)sz.p * sizeof(double));
+            continue;
+        }
         const struct item it = item_at(operand, offsets, items, b);
         status = item_geometry(&sz, &it, &g);
         if (status == STATUS_OK) {
@@ -729,7 +779,22 @@ int qtl_se_moments_backward(const double *const *operand, int64_t ndim, const in
     }
 
     /* The adjoint, item after item (broadcast operands' gradients summed in item order). */
-    for (int64_t b = 0; b < items && status == STATUS_OK && (need_ops || grad[BETA]); ++b) {
+    for (int64_t b = 0; b < items && status == STATUS_OK && (need_ops || grad[BETA] || (pairs && grad[WEIGHTS]));
+         ++b) {
+        if (failed && failed[b]) {
+            const struct item_grads bad = {
+                .mean = grad[MEAN] ? grad[MEAN] + grad_off[MEAN * items + b] : NULL,
+                .cov = grad[COV] ? grad[COV] + grad_off[COV * items + b] : NULL,
+                .inputs = grad[INPUTS] ? grad[INPUTS] + grad_off[INPUTS * items + b] : NULL,
+                .beta = grad[BETA] ? grad[BETA] + grad_off[BETA * items + b] : NULL,
+                .inv_ls = grad[INV_LS] ? grad[INV_LS] + grad_off[INV_LS * items + b] : NULL,
+                .log_sf2 = grad[LOG_SF2] ? grad[LOG_SF2] + grad_off[LOG_SF2 * items + b] : NULL,
+            };
+            poison_item(&sz, &bad, pairs && grad[WEIGHTS] ? grad[WEIGHTS] + grad_off[WEIGHTS * items + b] : NULL);
+            continue;
+        }
+        if (!(need_ops || grad[BETA]))
+            continue;
         const struct item it = item_at(operand, offsets, items, b);
         status = item_geometry(&sz, &it, &g);
         if (status)

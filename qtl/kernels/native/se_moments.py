@@ -3,6 +3,9 @@
 The twin of ``SEKernelMoments._fused_call`` (:mod:`qtl.kernels.moments`) for float64 CPU operands:
 mean, covariance (without the model variance diag(α²), which the caller adds) and gain of
 f_a(x) = Σ_i β_ai k_a(x_i, x) at x ~ N(μ, Σ), with the hand-derived adjoint of the whole formula.
+A batch item whose B_a or R_ab is not positive-definite is flagged by the library (its outputs and
+gradients NaN) and reported as :func:`qtl.gaussian.failed_elements` says: raised, or marked inside
+:func:`qtl.gaussian.element_failures`.
 """
 
 from __future__ import annotations
@@ -14,6 +17,7 @@ import torch  # first: the library then shares the libgomp torch has loaded
 from torch import Tensor
 from torch.autograd.function import FunctionCtx, once_differentiable
 
+from qtl.gaussian import failed_elements
 from qtl.kernels.native.loader import binding_once, load_binding
 
 _PTR, _INT64, _INT = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int
@@ -23,6 +27,7 @@ _INTS = ctypes.POINTER(ctypes.c_int64)
 _INNER = (1, 2, 2, 2, 2, 1, 3)
 _NUM_OPERANDS = len(_INNER)
 _STATUS_NOT_PD = 2
+_STATUS_ITEMS_FAILED = 3  # some items flagged as failed (their outputs NaN); the others computed
 
 
 class SEMomentsLibrary:
@@ -31,22 +36,23 @@ class SEMomentsLibrary:
     def __init__(self, lib: ctypes.CDLL) -> None:
         # operand, ndim, batch, strides, n, d, e
         common = [_PTRS, _INT64, _INTS, _INTS, _INT64, _INT64, _INT64]
-        lib.qtl_se_moments_forward.argtypes = [*common, _PTR, _PTR, _PTR, _PTR, _INT, _INT, _INT]
+        lib.qtl_se_moments_forward.argtypes = [*common, _PTR, _PTR, _PTR, _PTR, _PTR, _INT, _INT, _INT]
         lib.qtl_se_moments_forward.restype = _INT
-        lib.qtl_se_moments_backward.argtypes = [*common, _PTR, _INT, _PTRS, _INTS, _PTRS, _INTS, _INT]
+        lib.qtl_se_moments_backward.argtypes = [*common, _PTR, _PTR, _INT, _PTRS, _INTS, _PTRS, _INTS, _INT]
         lib.qtl_se_moments_backward.restype = _INT
         self._lib = lib
 
     def forward(
         self, operands: tuple[Tensor, ...], batch: torch.Size, with_grads: bool, lower_pairs: bool = True
-    ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        """Mean `*batch x E`, cov `*batch x E x E` (no model variance), gain `*batch x D x E` and the work buffer.
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor, ctypes.Array | None]:
+        """Mean `*batch x E`, cov `*batch x E x E` (no model variance), gain `*batch x D x E`, the work buffer, flags.
 
         ``operands`` (mean, cov, inputs, beta, inv_ls, log_sf2, weights) are contiguous in their trailing
         dimensions and broadcast to ``batch``; ``with_grads``: the work buffer also keeps the exp sums'
         operand gradients G_A, G_B for the backward pass. ``lower_pairs``: the a = b pairs' exp sums from
         their lower triangles (S_aa is symmetric: E of the E(E+1)/2 sums at half cost); False: every pair's
-        full n x n sum (the form before; benchmarks and tests).
+        full n x n sum (the form before; benchmarks and tests). The flags (`items` bytes, or None where no item
+        failed) are 1 for the items whose B_a or R_ab is not positive-definite (their outputs NaN), else 0.
         """
         inputs, beta = operands[2], operands[3]
         n, d, e = inputs.shape[-2], inputs.shape[-1], beta.shape[-2]
@@ -57,24 +63,31 @@ class SEMomentsLibrary:
         gain = mean.new_empty(*batch, d, e)
         # the sums `items x P`, the means `items x E`, and with_grads G_A, G_B `items x P x n x (D + 2)` each
         work = mean.new_empty(items * (pairs + e + (2 * pairs * n * (d + 2) if with_grads else 0)))
+        flags = (ctypes.c_ubyte * max(items, 1))()  # ctypes, not a tensor: no dispatched op where none fails
         status = self._lib.qtl_se_moments_forward(
             _pointers(operands), *_batch_args(operands, batch), n, d, e,
-            out_mean.data_ptr(), out_cov.data_ptr(), gain.data_ptr(), work.data_ptr(),
+            out_mean.data_ptr(), out_cov.data_ptr(), gain.data_ptr(), work.data_ptr(), ctypes.addressof(flags),
             int(with_grads), int(lower_pairs), torch.get_num_threads(),
         )  # fmt: skip
+        if status == _STATUS_ITEMS_FAILED:
+            return out_mean, out_cov, gain, work, flags
         _raise_for(status)
-        return out_mean, out_cov, gain, work
+        return out_mean, out_cov, gain, work, None
 
     def backward(
         self,
         operands: tuple[Tensor, ...],
         batch: torch.Size,
         work: Tensor,
+        failed: ctypes.Array | None,
         fused: bool,
         grad_outputs: tuple[Tensor | None, Tensor | None, Tensor | None],
         needs: tuple[bool, ...],
     ) -> list[Tensor | None]:
-        """Gradients of the 7 operands (their own shapes; None where ``needs`` says not), given those of the outputs."""
+        """Gradients of the 7 operands (their own shapes; None where ``needs`` says not), given those of the outputs.
+
+        ``failed``: the forward pass's flags where any item failed (its gradients NaN), else None.
+        """
         grads = [torch.zeros(t.shape, dtype=t.dtype) if need else None for t, need in zip(operands, needs, strict=True)]
         ndim = len(batch)
         out_strides: list[int] = []
@@ -88,7 +101,7 @@ class SEMomentsLibrary:
         ]
         status = self._lib.qtl_se_moments_backward(
             _pointers(operands), *_batch_args(operands, batch), *_sizes(operands),
-            work.data_ptr(), int(fused),
+            work.data_ptr(), None if failed is None else ctypes.addressof(failed), int(fused),
             _pointers(grad_outputs), _int64s(out_strides), _pointers(grads), _int64s(grad_strides),
             torch.get_num_threads(),
         )  # fmt: skip
@@ -185,10 +198,13 @@ class NativeSEKernelMoments(torch.autograd.Function):
         needs = tuple(ctx.needs_input_grad[:_NUM_OPERANDS]) if grad_enabled else (False,) * _NUM_OPERANDS
         need_ops = any(needs[i] for i in (0, 1, 2, 4, 5))  # all but beta enter the exp sums' operands
         ctx.fused = need_ops and not needs[6]
-        out_mean, out_cov, gain, work = library.forward(operands, batch, ctx.fused, lower_pairs)
+        out_mean, out_cov, gain, work, flags = library.forward(operands, batch, ctx.fused, lower_pairs)
+        if flags is not None:  # raises outside qtl.gaussian.element_failures
+            failed = torch.frombuffer(flags, dtype=torch.uint8)[: math.prod(batch)].view(batch).bool()
+            failed_elements(failed, what="the native SE-kernel moments (a B_a or R_ab)")
         if any(needs):
             ctx.save_for_backward(*operands)
-            ctx.work, ctx.batch, ctx.library = work, batch, library
+            ctx.work, ctx.batch, ctx.library, ctx.failed = work, batch, library, flags
         ctx.set_materialize_grads(False)
         return out_mean, out_cov, gain
 
@@ -199,7 +215,8 @@ class NativeSEKernelMoments(torch.autograd.Function):
     ) -> tuple[Tensor | None, ...]:
         operands = ctx.saved_tensors
         needs = tuple(ctx.needs_input_grad[:_NUM_OPERANDS])
-        grads = ctx.library.backward(operands, ctx.batch, ctx.work, ctx.fused, (grad_mean, grad_cov, grad_gain), needs)
+        grads = ctx.library.backward(operands, ctx.batch, ctx.work, ctx.failed, ctx.fused,
+                                     (grad_mean, grad_cov, grad_gain), needs)
         return *grads, None, None, None
 
 
