@@ -39,6 +39,7 @@ log = logging.getLogger(__name__)
 RESUME_OVERRIDABLE = frozenset({"episodes", "progress", "figure_every", "threads", "device", "kernels", "video",
                                 "keep_checkpoints", "resume"})
 HYDRA_DIR = ".hydra"  # the run's record of its configuration, as Hydra lays it out
+OMEGACONF_KEY = "full_key:"  # how OmegaConf names the key in the message of an error it re-raises with its own type
 FULL_ERROR = "HYDRA_FULL_ERROR"  # Hydra's switch for full tracebacks; qtl-train honours it too
 
 
@@ -180,6 +181,15 @@ def one_line(err: BaseException) -> str:
     return first
 
 
+def override_error(err: BaseException) -> str:
+    """One line for an error OmegaConf raised with its own type while merging an override: the key, the reason."""
+    lines = [line.strip() for line in str(err).splitlines() if line.strip()]
+    key = next((line.removeprefix(OMEGACONF_KEY).strip() for line in lines if line.startswith(OMEGACONF_KEY)), "?")
+    hint = (" (a node that is null in its YAML takes no keys from the command line: give the whole node in a task "
+            "YAML of your own, see docs/guide/byo-env.md)" if "NoneType" in lines[0] else "")
+    return f"cannot apply the override of {key}: {lines[0]}{hint}"
+
+
 def _key_and_reason(err: BaseException) -> str:
     """``key: reason`` of the first OmegaConf error in ``err``'s chain (the reason alone without a key; else '')."""
     seen = err.__cause__ or err.__context__
@@ -246,6 +256,11 @@ def main() -> None:
         if verbose:
             raise
         sys.stderr.write(f"qtl-train: {one_line(err)}\n")
+        raise SystemExit(1) from None
+    except (AttributeError, KeyError, TypeError, ValueError) as err:
+        if verbose or OMEGACONF_KEY not in str(err):
+            raise
+        sys.stderr.write(f"qtl-train: {override_error(err)}\n")  # an override OmegaConf could not merge
         raise SystemExit(1) from None
     finally:
         if previous is None:
