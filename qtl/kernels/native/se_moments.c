@@ -515,6 +515,20 @@ struct item_grads {
     const double *g_mean, *g_cov, *g_gain; /* e, e x e, d x e (zeros where the output had none) */
 };
 
+/* The gradient outputs of item b (NULL where that operand's gradient is not asked for); no output gradients yet. */
+static struct item_grads item_grads_at(double *const *grad, const int64_t *grad_off, int64_t items, int64_t b)
+{
+    const struct item_grads gr = {
+        .mean = grad[MEAN] ? grad[MEAN] + grad_off[MEAN * items + b] : NULL,
+        .cov = grad[COV] ? grad[COV] + grad_off[COV * items + b] : NULL,
+        .inputs = grad[INPUTS] ? grad[INPUTS] + grad_off[INPUTS * items + b] : NULL,
+        .beta = grad[BETA] ? grad[BETA] + grad_off[BETA * items + b] : NULL,
+        .inv_ls = grad[INV_LS] ? grad[INV_LS] + grad_off[INV_LS * items + b] : NULL,
+        .log_sf2 = grad[LOG_SF2] ? grad[LOG_SF2] + grad_off[LOG_SF2 * items + b] : NULL,
+    };
+    return gr;
+}
+
 /* The mean and gain's share of the adjoint of one item, given m̄ (`e`, cov's share included). */
 static void mean_gain_adjoint(const struct sizes *sz, const struct item *it, const struct geometry *g,
                               const double *mean_bar, const struct item_grads *gr, struct adjoint *adj)
@@ -782,14 +796,7 @@ int qtl_se_moments_backward(const double *const *operand, int64_t ndim, const in
     for (int64_t b = 0; b < items && status == STATUS_OK && (need_ops || grad[BETA] || (pairs && grad[WEIGHTS]));
          ++b) {
         if (failed && failed[b]) {
-            const struct item_grads bad = {
-                .mean = grad[MEAN] ? grad[MEAN] + grad_off[MEAN * items + b] : NULL,
-                .cov = grad[COV] ? grad[COV] + grad_off[COV * items + b] : NULL,
-                .inputs = grad[INPUTS] ? grad[INPUTS] + grad_off[INPUTS * items + b] : NULL,
-                .beta = grad[BETA] ? grad[BETA] + grad_off[BETA * items + b] : NULL,
-                .inv_ls = grad[INV_LS] ? grad[INV_LS] + grad_off[INV_LS * items + b] : NULL,
-                .log_sf2 = grad[LOG_SF2] ? grad[LOG_SF2] + grad_off[LOG_SF2 * items + b] : NULL,
-            };
+            const struct item_grads bad = item_grads_at(grad, grad_off, items, b);
             poison_item(&sz, &bad, pairs && grad[WEIGHTS] ? grad[WEIGHTS] + grad_off[WEIGHTS * items + b] : NULL);
             continue;
         }
@@ -808,17 +815,10 @@ int qtl_se_moments_backward(const double *const *operand, int64_t ndim, const in
                 entry -= (g_cov[a * e + c] + g_cov[c * e + a]) * m[c];
             m_bar[a] = entry;
         }
-        const struct item_grads gr = {
-            .mean = grad[MEAN] ? grad[MEAN] + grad_off[MEAN * items + b] : NULL,
-            .cov = grad[COV] ? grad[COV] + grad_off[COV * items + b] : NULL,
-            .inputs = grad[INPUTS] ? grad[INPUTS] + grad_off[INPUTS * items + b] : NULL,
-            .beta = grad[BETA] ? grad[BETA] + grad_off[BETA * items + b] : NULL,
-            .inv_ls = grad[INV_LS] ? grad[INV_LS] + grad_off[INV_LS * items + b] : NULL,
-            .log_sf2 = grad[LOG_SF2] ? grad[LOG_SF2] + grad_off[LOG_SF2 * items + b] : NULL,
-            .g_mean = g_mean,
-            .g_cov = g_cov,
-            .g_gain = g_gain,
-        };
+        struct item_grads gr = item_grads_at(grad, grad_off, items, b);
+        gr.g_mean = g_mean;
+        gr.g_cov = g_cov;
+        gr.g_gain = g_gain;
         memset(adj.nu_bar, 0, (size_t)(n * d) * sizeof(double));
         memset(adj.c_bar, 0, (size_t)(e * d) * sizeof(double));
         memset(adj.sq_bar, 0, (size_t)(e * d) * sizeof(double));
