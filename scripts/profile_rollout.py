@@ -1,10 +1,12 @@
 """Where one moment-matching rollout + gradient spends its time: torch.profiler, per kernels setting.
 
     .venv/bin/python scripts/profile_rollout.py [--n 250] [--threads 2] [--rows 15] [--kernels native/native ...]
+        [--integration delta speed]
     .venv/bin/python scripts/profile_rollout.py --experiment aircraft_source [--threads 1] [override ...]
 
 On the model and ψ_0 that `scripts/bench_policy_search.py` times (its cached cart-pole model of n tuples,
 fitted first if missing), for each ``backend/moments`` pair of ``kernels.backend`` and ``kernels.moments``:
+and each ``--integration`` (``propagation.integration``: ``delta``, or ``speed``, kinematic moment matching):
 the median wall time of a rollout + gradient (after warm-ups), then one profiled rollout + gradient: the
 number of profiled operations (aten ops, autograd nodes and the native autograd Functions) and the rows
 that take the most self CPU time. With ``--experiment``, the same for one round of that full-scale preset's
@@ -61,15 +63,17 @@ def profile_call(call: Callable[[], float | None], heading: str, rows: int) -> s
     return "\n".join(lines)
 
 
-def profile_setting(backend: str, moments: str, n: int, rows: int) -> str:
-    """The timing and profile table of one ``kernels`` setting, as Markdown."""
-    cfg = compose_config("moment_matching", "float64", [f"kernels.backend={backend}", f"kernels.moments={moments}"])
+def profile_setting(backend: str, moments: str, n: int, rows: int, integration: str = "delta") -> str:
+    """The timing and profile table of one ``kernels`` setting and ``propagation.integration``, as Markdown."""
+    cfg = compose_config("moment_matching", "float64", [f"kernels.backend={backend}", f"kernels.moments={moments}",
+                                                       f"propagation.integration={integration}"])
     path, _ = ensure_model(cfg, n, 0, CACHE_DIR)
     parts = build(cfg)
     model = DynamicsGP.load(path, dtype=parts.dtype, device=parts.device)
     propagator = parts.make_propagator(model, parts.initial_policy(), parts.reward, angle_dims=parts.task.angle_dims)
     return profile_call(lambda: rollout_and_gradient(propagator, parts.start, parts.task.horizon),
-                        f"### kernels.backend={backend} kernels.moments={moments}, n = {n}", rows)
+                        f"### kernels.backend={backend} kernels.moments={moments} propagation.integration="
+                        f"{integration}, n = {n}", rows)
 
 
 def profile_experiment(preset: str, overrides: list[str], rows: int, seed: int = 0) -> str:
@@ -90,6 +94,8 @@ def main() -> None:
     parser.add_argument("--rows", type=int, default=15, help="table rows per setting")
     parser.add_argument("--kernels", nargs="+", default=["torch/reference", "native/native"],
                         metavar="BACKEND/MOMENTS", help="kernels.backend/kernels.moments settings to profile")
+    parser.add_argument("--integration", nargs="+", default=["delta"], choices=["delta", "speed"],
+                        help="propagation.integration of the cart-pole profile (speed: kinematic moment matching)")
     parser.add_argument("--experiment", metavar="PRESET",
                         help="profile one search round of this full-scale preset (e.g. aircraft_source) instead")
     args, overrides = parse_with_overrides(parser)
@@ -104,7 +110,8 @@ def main() -> None:
         print(profile_experiment(args.experiment, overrides, args.rows), "\n", flush=True)
         return
     for backend, moments in settings:
-        print(profile_setting(backend, moments, args.n, args.rows), "\n", flush=True)
+        for integration in args.integration:
+            print(profile_setting(backend, moments, args.n, args.rows, integration), "\n", flush=True)
 
 
 if __name__ == "__main__":
