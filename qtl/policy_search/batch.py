@@ -102,6 +102,12 @@ class RestartBatch:
             self.best_value[restart] = value
             self.best_psi[restart] = self._psi_at(position)
 
+    def _count_rollout(self, restarts: list[int]) -> None:
+        """One rollout more, evaluating each of ``restarts`` once more."""
+        self.rollouts += 1
+        for restart in restarts:
+            self.calls[restart] += 1
+
     def evaluate_each(self, objective: Callable[[], Tensor]) -> list[Evaluation]:
         """(−V_r, −∂V_r/∂ψ_r flattened `n`) of each active restart from one rollout; INVALID where either is not finite.
 
@@ -109,9 +115,7 @@ class RestartBatch:
         value (counted as a linalg failure). When the batched rollout still raises numerically, each restart
         is evaluated alone (as the sequential search would).
         """
-        self.rollouts += 1
-        for restart in self.active:
-            self.calls[restart] += 1
+        self._count_rollout(self.active)
         try:
             with element_failures() as failures:
                 values = objective()
@@ -155,9 +159,7 @@ class RestartBatch:
         counted as a linalg failure), or, when the batched rollout still raises numerically, those that fail
         alone when re-evaluated one by one (``values`` None then).
         """
-        self.rollouts += 1
-        for restart in self.active:
-            self.calls[restart] += 1
+        self._count_rollout(self.active)
         try:
             with element_failures() as failures:
                 values = objective()
@@ -180,8 +182,7 @@ class RestartBatch:
         found: list[tuple[Tensor | None, Tensor | None]] = []
         try:
             for position, restart in enumerate(self.active):
-                self.rollouts += 1
-                self.calls[restart] += 1
+                self._count_rollout([restart])
                 single = {name: nn.Parameter(p[position : position + 1].detach().clone(),
                                              requires_grad=p.requires_grad) for name, p in self.params.items()}
                 set_psi(self.policy, single, (1,))
