@@ -18,6 +18,17 @@ import torch
 from torch import Tensor
 
 
+def batch_shapes(*shapes: torch.Size) -> torch.Size:
+    """``torch.broadcast_shapes(*shapes)``; no Python-level broadcasting where each shape is the longest one's tail."""
+    if not shapes:
+        return torch.Size()
+    longest = max(shapes, key=len)
+    size = len(longest)
+    if all(shape == longest[size - len(shape) :] for shape in shapes):
+        return torch.Size(longest)
+    return torch.broadcast_shapes(*shapes)
+
+
 @dataclass(frozen=True)
 class Gaussian:
     """N(mean, cov) with leading batch dimensions: ``mean`` `... x D`, ``cov`` `... x D x D`.
@@ -36,7 +47,7 @@ class Gaussian:
             raise ValueError(
                 f"cov must be `... x {dim} x {dim}` to match mean {tuple(self.mean.shape)}, got {tuple(self.cov.shape)}"
             )
-        torch.broadcast_shapes(self.mean.shape[:-1], self.cov.shape[:-2])  # raises if not
+        batch_shapes(self.mean.shape[:-1], self.cov.shape[:-2])  # raises if not
 
     @property
     def dim(self) -> int:
@@ -46,7 +57,7 @@ class Gaussian:
     @property
     def batch_shape(self) -> torch.Size:
         """The broadcast batch shape of mean and covariance."""
-        return torch.broadcast_shapes(self.mean.shape[:-1], self.cov.shape[:-2])
+        return batch_shapes(self.mean.shape[:-1], self.cov.shape[:-2])
 
     @property
     def dtype(self) -> torch.dtype:
@@ -107,8 +118,7 @@ def full_batch(state: Gaussian) -> Gaussian:
     Unlike ``expand`` it adds no (view) operation to the autograd graph when there is nothing to
     broadcast, which changes the order gradients accumulate in: round-off only.
     """
-    batch = state.batch_shape
-    if state.mean.shape[:-1] == batch and state.cov.shape[:-2] == batch:
+    if state.mean.shape[:-1] == state.cov.shape[:-2]:
         return state
     return state.expand()
 
@@ -126,6 +136,8 @@ def batch_matmul(a: Tensor, b: Tensor) -> Tensor:
         return a @ b
     if not batch:
         return torch.mm(a, b)
+    if len(batch) == 1:  # bmm as it is: no reshape views
+        return torch.bmm(a, b)
     out = torch.bmm(a.reshape(-1, *a.shape[-2:]), b.reshape(-1, *b.shape[-2:]))
     return out.view(*batch, *out.shape[-2:])
 

@@ -31,8 +31,11 @@
  * constants are never copied per item. Outputs are dense over the batch. Gradients are added into
  * buffers (zeroed by the caller) by the same per-operand strides, one item after the other, so
  * broadcast operands get their sums without races. The small per-item work (factorisations, mean,
- * gain, operands, adjoint: O((E + P) n D²)) runs item by item; the n x n sums, the bulk, run in
- * parallel in exp_sum.c with the thread count passed per call.
+ * gain, operands, adjoint: O((E + P) n D²)) runs in parallel over the items (each on its own
+ * thread's scratch) wherever no two items write the same memory (the forward pass always; the
+ * adjoint when no wanted gradient is broadcast, e.g. the GP dynamics' mean and cov only), else item
+ * by item; each item's arithmetic is the same either way, so results do not depend on the thread
+ * count. The n x n sums, the bulk, run in parallel in exp_sum.c with the thread count passed per call.
  *
  * Failure per item: where a B_a or R_p of an item is not positive definite, the forward pass with a
  * `failed` buffer (`items` flags) flags that item, makes its mean, covariance and gain NaN (its exp-sum
@@ -44,6 +47,7 @@
  *   gcc -O3 -march=native -fno-math-errno -fopenmp -fPIC -shared -Wall -Wextra *.c -lm
  */
 #include <math.h>
+#include <omp.h>
 #include <stdint.h>
 #include <stdlib.h>
 #include <string.h>
@@ -379,6 +383,79 @@ static int64_t *sum_offsets(const struct sizes *sz, const int64_t *w_offsets)
     return out;
 }
 
+/* What the per-item forward work reads, and the per-item memory it writes. */
+struct forward_ctx {
+    const struct sizes *sz;
+    const double *const *operand;
+    const int64_t *offsets;
+    unsigned char *failed;
+    double *out_mean, *gain, *lhs, *rhs, *hr;
+};
+
+/* Item b's geometry, mean, gain and exp-sum operands (NaN outputs and zero operands where it is flagged failed);
+ * g and vec (vec_len(d)): scratch. Returns a status (STATUS_OK for a flagged item). */
+static int item_forward(const struct forward_ctx *c, int64_t b, struct geometry *g, double *vec)
+{
+    const struct sizes *sz = c->sz;
+    const int64_t d = sz->d, e = sz->e, block = sz->n * sz->k;
+    const struct item it = item_at(c->operand, c->offsets, sz->items, b);
+    const int status = item_geometry(sz, &it, g);
+    if (c->failed)
+        c->failed[b] = status == STATUS_NOT_PD;
+    if (status == STATUS_NOT_PD && c->failed) { /* NaN outputs; zero operands keep its exp sums finite */
+        fill_nan(c->out_mean + b * e, e);
+        fill_nan(c->gain + b * d * e, d * e);
+        memset(c->lhs + b * sz->p * block, 0, (size_t)(sz->p * block) * sizeof(double));
+        memset(c->rhs + b * sz->p * block, 0, (size_t)(sz->p * block) * sizeof(double));
+        memset(c->hr + b * sz->p, 0, (size_t)sz->p * sizeof(double));
+        return STATUS_OK;
+    }
+    if (status)
+        return status;
+    item_mean_gain(sz, &it, g, c->out_mean + b * e, c->gain + b * d * e, vec);
+    item_operands(sz, &it, g, c->lhs + b * sz->p * block, c->rhs + b * sz->p * block, vec);
+    memcpy(c->hr + b * sz->p, g->hr, (size_t)sz->p * sizeof(double));
+    return STATUS_OK;
+}
+
+/* item_forward of every item on `workers` threads, each with its own scratch; returns the first failing
+ * item's status, or STATUS_OK. */
+static int parallel_items(const struct forward_ctx *c, int workers)
+{
+    const int64_t items = c->sz->items;
+    struct geometry *geo = calloc((size_t)workers, sizeof(*geo));
+    double **vecs = calloc((size_t)workers, sizeof(*vecs));
+    int *statuses = calloc((size_t)(items > 0 ? items : 1), sizeof(int));
+    int status = geo && vecs && statuses ? STATUS_OK : STATUS_NO_MEMORY;
+    int made = 0;
+    for (; made < workers && status == STATUS_OK; ++made) {
+        status = alloc_geometry(geo + made, c->sz);
+        vecs[made] = status == STATUS_OK ? alloc_doubles(vec_len(c->sz->d)) : NULL;
+        if (status == STATUS_OK && !vecs[made]) {
+            free_geometry(geo + made);
+            status = STATUS_NO_MEMORY;
+        }
+    }
+    if (status == STATUS_OK) {
+#pragma omp parallel for num_threads(workers) schedule(static)
+        for (int64_t b = 0; b < items; ++b) {
+            const int w = omp_get_thread_num();
+            statuses[b] = item_forward(c, b, geo + w, vecs[w]);
+        }
+        for (int64_t b = 0; b < items && status == STATUS_OK; ++b)
+            status = statuses[b];
+    } else if (made > 0)
+        --made; /* the failed one freed itself */
+    for (int w = 0; w < made; ++w) {
+        free_geometry(geo + w);
+        free(vecs[w]);
+    }
+    free(statuses);
+    free(vecs);
+    free(geo);
+    return status;
+}
+
 /* work: the sums `items x p`, the means `items x e` (for the backward pass), then (with_grads) G_A
  * and G_B `items x p x n x k` each; failed `items` (or NULL): 1 for an item whose B_a or R_p is not
  * positive definite (its outputs NaN), else 0; lower_pairs: the a = b pairs' sums from their lower
@@ -402,26 +479,15 @@ int qtl_se_moments_forward(const double *const *operand, int64_t ndim, const int
     double *hr = alloc_doubles(count), *vec = alloc_doubles(vec_len(d));
     unsigned char *lower = malloc((size_t)(count > 0 ? count : 1)); /* the a = b pairs: symmetric sums */
     int status = (!offsets || !sum_off || !lhs || !rhs || !hr || !vec || !lower) ? STATUS_NO_MEMORY : STATUS_OK;
-    for (int64_t b = 0; b < items && status == STATUS_OK; ++b) {
-        const struct item it = item_at(operand, offsets, items, b);
-        status = item_geometry(&sz, &it, &g);
-        if (failed)
-            failed[b] = status == STATUS_NOT_PD;
-        if (status == STATUS_NOT_PD && failed) { /* NaN outputs; zero operands keep its exp sums finite */
-            status = STATUS_OK;
-            fill_nan(out_mean + b * e, e);
-            fill_nan(gain + b * d * e, d * e);
-            memset(lhs + b * sz.p * block, 0, (size_t)(sz.p * block) * sizeof(double));
-            memset(rhs + b * sz.p * block, 0, (size_t)(sz.p * block) * sizeof(double));
-            memset(hr + b * sz.p, 0, (size_t)sz.p * sizeof(double));
-            continue;
-        }
-        if (status)
-            break;
-        item_mean_gain(&sz, &it, &g, out_mean + b * e, gain + b * d * e, vec);
-        item_operands(&sz, &it, &g, lhs + b * sz.p * block, rhs + b * sz.p * block, vec);
-        memcpy(hr + b * sz.p, g.hr, (size_t)sz.p * sizeof(double));
-    }
+    const struct forward_ctx ctx = {
+        .sz = &sz, .operand = operand, .offsets = offsets, .failed = failed, .out_mean = out_mean, .gain = gain,
+        .lhs = lhs, .rhs = rhs, .hr = hr,
+    };
+    const int workers = threads < items ? threads : (int)items;
+    if (status == STATUS_OK && workers > 1) /* the items' own memory only: in parallel, the same arithmetic */
+        status = parallel_items(&ctx, workers);
+    for (int64_t b = 0; workers <= 1 && b < items && status == STATUS_OK; ++b)
+        status = item_forward(&ctx, b, &g, vec);
     if (status == STATUS_OK) {
         double *sums = work, *ops = work + count + items * e;
         double *g_a = with_grads ? ops : NULL, *g_b = with_grads ? ops + count * block : NULL;
@@ -706,6 +772,175 @@ static void poison_item(const struct sizes *sz, const struct item_grads *gr, dou
             parts[part][i] += NAN;
 }
 
+/* What the adjoint of every item reads (and the per-item memory it writes), shared by the items. */
+struct backward_ctx {
+    const struct sizes *sz;
+    const double *const *operand;
+    const int64_t *offsets;
+    double *const *grad;
+    const int64_t *grad_off;
+    const unsigned char *failed;
+    int pairs, need_ops, fused;
+    const double *const *grad_out;
+    const int64_t *grad_out_strides;
+    int64_t ndim;
+    const int64_t *batch;
+    double *sum_bar;
+    const double *work, *out_mean, *ops, *ga, *gb, *ones;
+};
+
+/* One worker's scratch of the adjoint: the geometry, the adjoint's buffers and the dense output gradients. */
+struct adjoint_scratch {
+    struct geometry g;
+    struct adjoint adj;
+    double *dense; /* 2 e + e² + d e */
+};
+
+static void free_adjoint_scratch(struct adjoint_scratch *s)
+{
+    free(s->adj.nu_bar);
+    free(s->adj.c_bar);
+    free(s->adj.sq_bar);
+    free(s->adj.mat_bar);
+    free(s->adj.tmp);
+    free(s->adj.cov_bar);
+    free(s->adj.vec);
+    free(s->dense);
+    free_geometry(&s->g);
+}
+
+/* Allocates one worker's scratch; returns STATUS_OK or STATUS_NO_MEMORY (then nothing is left allocated). */
+static int alloc_adjoint_scratch(struct adjoint_scratch *s, const struct sizes *sz)
+{
+    const int64_t n = sz->n, d = sz->d, e = sz->e;
+    memset(s, 0, sizeof(*s));
+    if (alloc_geometry(&s->g, sz))
+        return STATUS_NO_MEMORY;
+    s->adj.nu_bar = alloc_doubles(n * d);
+    s->adj.c_bar = alloc_doubles(e * d);
+    s->adj.sq_bar = alloc_doubles(e * d);
+    s->adj.mat_bar = alloc_doubles(d * d);
+    s->adj.tmp = alloc_doubles(2 * d * d);
+    s->adj.cov_bar = alloc_doubles(d * d);
+    s->adj.vec = alloc_doubles(vec_len(d));
+    s->dense = alloc_doubles(2 * e + e * e + d * e);
+    if (!s->adj.nu_bar || !s->adj.c_bar || !s->adj.sq_bar || !s->adj.mat_bar || !s->adj.tmp || !s->adj.cov_bar ||
+        !s->adj.vec || !s->dense) {
+        free_adjoint_scratch(s);
+        return STATUS_NO_MEMORY;
+    }
+    return STATUS_OK;
+}
+
+/* Whether the items' gradient memory is disjoint: every wanted gradient's item offsets increase by at least
+ * one item's size (none broadcast), so that items may add into their own in parallel. */
+static int disjoint_items(const struct sizes *sz, double *const *grad, const int64_t *grad_off, int pairs)
+{
+    const int64_t n = sz->n, d = sz->d, e = sz->e;
+    const int64_t sizes[OPERANDS] = {d, d * d, n * d, e * n, e * d, e, sz->p * n * n};
+    for (int op = 0; op < OPERANDS; ++op) {
+        if (!grad[op] || (op == WEIGHTS && !pairs))
+            continue;
+        for (int64_t b = 1; b < sz->items; ++b)
+            if (grad_off[op * sz->items + b] - grad_off[op * sz->items + b - 1] < sizes[op])
+                return 0;
+    }
+    return 1;
+}
+
+/* The adjoint of item b into its gradients (poisoned where the forward pass flagged it); returns a status. */
+static int item_adjoint(const struct backward_ctx *c, int64_t b, struct adjoint_scratch *s)
+{
+    const struct sizes *sz = c->sz;
+    const int64_t items = sz->items, n = sz->n, d = sz->d, e = sz->e, block = n * sz->k, count = items * sz->p;
+    double *const *grad = c->grad;
+    if (c->failed && c->failed[b]) {
+        const struct item_grads bad = item_grads_at(grad, c->grad_off, items, b);
+        poison_item(sz, &bad, c->pairs && grad[WEIGHTS] ? grad[WEIGHTS] + c->grad_off[WEIGHTS * items + b] : NULL);
+        return STATUS_OK;
+    }
+    if (!(c->need_ops || grad[BETA]))
+        return STATUS_OK;
+    struct geometry *g = &s->g;
+    struct adjoint *adj = &s->adj;
+    double *const g_mean = s->dense, *const g_cov = g_mean + e, *const g_gain = g_cov + e * e;
+    double *const m_bar = g_gain + d * e;
+    const struct item it = item_at(c->operand, c->offsets, items, b);
+    const int status = item_geometry(sz, &it, g);
+    if (status)
+        return status;
+    read_output_grads(c->grad_out, c->grad_out_strides, c->ndim, c->batch, b, d, e, g_mean, g_cov, g_gain);
+    sum_grads(sz, g, g_cov, c->sum_bar + b * sz->p);
+    const double *m = c->out_mean + b * e;
+    for (int64_t a = 0; a < e; ++a) { /* cov_ab = … − m_a m_b */
+        double entry = g_mean[a];
+        for (int64_t col = 0; col < e; ++col)
+            entry -= (g_cov[a * e + col] + g_cov[col * e + a]) * m[col];
+        m_bar[a] = entry;
+    }
+    struct item_grads gr = item_grads_at(grad, c->grad_off, items, b);
+    gr.g_mean = g_mean;
+    gr.g_cov = g_cov;
+    gr.g_gain = g_gain;
+    memset(adj->nu_bar, 0, (size_t)(n * d) * sizeof(double));
+    memset(adj->c_bar, 0, (size_t)(e * d) * sizeof(double));
+    memset(adj->sq_bar, 0, (size_t)(e * d) * sizeof(double));
+    memset(adj->cov_bar, 0, (size_t)(d * d) * sizeof(double));
+    mean_gain_adjoint(sz, &it, g, m_bar, &gr, adj);
+    if (c->pairs && c->need_ops) {
+        const double *sums = c->work + b * sz->p, *bars = c->sum_bar + b * sz->p;
+        if (c->fused) /* G_A, G_B from the forward, times S̄ */
+            pairs_adjoint(sz, &it, g, sums, bars, c->ops + b * sz->p * block, c->ops + (count + b * sz->p) * block,
+                          bars, &gr, adj);
+        else /* the recomputed adjoints, S̄ included */
+            pairs_adjoint(sz, &it, g, sums, bars, c->ga + b * sz->p * block, c->gb + b * sz->p * block, c->ones, &gr,
+                          adj);
+    }
+    /* ν = x − μ; c² chains into c */
+    for (int64_t i = 0; i < n; ++i)
+        for (int64_t k = 0; k < d; ++k) {
+            const double bar = adj->nu_bar[i * d + k];
+            if (gr.inputs)
+                gr.inputs[i * d + k] += bar;
+            if (gr.mean)
+                gr.mean[k] -= bar;
+        }
+    if (gr.inv_ls)
+        for (int64_t a = 0; a < e; ++a)
+            for (int64_t k = 0; k < d; ++k)
+                gr.inv_ls[a * d + k] += adj->c_bar[a * d + k] + 2.0 * it.inv_ls[a * d + k] * adj->sq_bar[a * d + k];
+    if (gr.cov)
+        for (int64_t i = 0; i < d * d; ++i)
+            gr.cov[i] += adj->cov_bar[i];
+    return STATUS_OK;
+}
+
+/* item_adjoint of every item on `workers` threads, each with its own scratch (the items' memory disjoint);
+ * returns the first failing item's status, or STATUS_OK. */
+static int parallel_adjoints(const struct backward_ctx *c, int workers)
+{
+    const int64_t items = c->sz->items;
+    struct adjoint_scratch *scratch = calloc((size_t)workers, sizeof(*scratch));
+    int *statuses = calloc((size_t)(items > 0 ? items : 1), sizeof(int));
+    int status = scratch && statuses ? STATUS_OK : STATUS_NO_MEMORY;
+    int made = 0;
+    for (; made < workers && status == STATUS_OK; ++made)
+        status = alloc_adjoint_scratch(scratch + made, c->sz);
+    if (status == STATUS_OK) {
+#pragma omp parallel for num_threads(workers) schedule(static)
+        for (int64_t b = 0; b < items; ++b)
+            statuses[b] = item_adjoint(c, b, scratch + omp_get_thread_num());
+        for (int64_t b = 0; b < items && status == STATUS_OK; ++b)
+            status = statuses[b];
+    } else if (made > 0)
+        --made; /* the failed one freed itself */
+    for (int w = 0; w < made; ++w)
+        free_adjoint_scratch(scratch + w);
+    free(statuses);
+    free(scratch);
+    return status;
+}
+
 /* grad_out: the gradients of mean, cov, gain (NULL: none), with strides as read_output_grads reads
  * them; grad: the 7 operands' gradient buffers (NULL: not wanted; zeroed by the caller, contiguous
  * in their trailing dimensions) with batch strides `7 x ndim`; work: the forward's (sums, means),
@@ -752,7 +987,7 @@ int qtl_se_moments_backward(const double *const *operand, int64_t ndim, const in
                   (recompute && (!lhs || !rhs || (need_ops && (!ga || !gb)))))
                      ? STATUS_NO_MEMORY
                      : STATUS_OK;
-    double *const g_mean = dense, *const g_cov = dense + e, *const g_gain = g_cov + e * e, *const m_bar = g_gain + d * e;
+    double *const g_mean = dense, *const g_cov = dense + e, *const g_gain = g_cov + e * e;
     for (int64_t p = 0; p < sz.p && status == STATUS_OK; ++p)
         ones[p] = 1.0;
 
@@ -792,63 +1027,23 @@ int qtl_se_moments_backward(const double *const *operand, int64_t ndim, const in
             }
     }
 
-    /* The adjoint, item after item (broadcast operands' gradients summed in item order). */
-    for (int64_t b = 0; b < items && status == STATUS_OK && (need_ops || grad[BETA] || (pairs && grad[WEIGHTS]));
-         ++b) {
-        if (failed && failed[b]) {
-            const struct item_grads bad = item_grads_at(grad, grad_off, items, b);
-            poison_item(&sz, &bad, pairs && grad[WEIGHTS] ? grad[WEIGHTS] + grad_off[WEIGHTS * items + b] : NULL);
-            continue;
+    /* The adjoint, item after item (broadcast operands' gradients summed in item order); in parallel over the
+     * items when no two items add into the same gradient memory (each item's arithmetic is the same either way). */
+    if (status == STATUS_OK && (need_ops || grad[BETA] || (pairs && grad[WEIGHTS]))) {
+        const struct backward_ctx ctx = {
+            .sz = &sz, .operand = operand, .offsets = offsets, .grad = grad, .grad_off = grad_off, .failed = failed,
+            .pairs = pairs, .need_ops = need_ops, .fused = fused, .grad_out = grad_out,
+            .grad_out_strides = grad_out_strides, .ndim = ndim, .batch = batch, .sum_bar = sum_bar, .work = work,
+            .out_mean = out_mean, .ops = ops, .ga = ga, .gb = gb, .ones = ones,
+        };
+        const int workers = threads < items ? threads : (int)items;
+        if (workers > 1 && disjoint_items(&sz, grad, grad_off, pairs))
+            status = parallel_adjoints(&ctx, workers);
+        else {
+            struct adjoint_scratch serial = {.g = g, .adj = adj, .dense = dense};
+            for (int64_t b = 0; b < items && status == STATUS_OK; ++b)
+                status = item_adjoint(&ctx, b, &serial);
         }
-        if (!(need_ops || grad[BETA]))
-            continue;
-        const struct item it = item_at(operand, offsets, items, b);
-        status = item_geometry(&sz, &it, &g);
-        if (status)
-            break;
-        read_output_grads(grad_out, grad_out_strides, ndim, batch, b, d, e, g_mean, g_cov, g_gain);
-        sum_grads(&sz, &g, g_cov, sum_bar + b * sz.p);
-        const double *m = out_mean + b * e;
-        for (int64_t a = 0; a < e; ++a) { /* cov_ab = … − m_a m_b */
-            double entry = g_mean[a];
-            for (int64_t c = 0; c < e; ++c)
-                entry -= (g_cov[a * e + c] + g_cov[c * e + a]) * m[c];
-            m_bar[a] = entry;
-        }
-        struct item_grads gr = item_grads_at(grad, grad_off, items, b);
-        gr.g_mean = g_mean;
-        gr.g_cov = g_cov;
-        gr.g_gain = g_gain;
-        memset(adj.nu_bar, 0, (size_t)(n * d) * sizeof(double));
-        memset(adj.c_bar, 0, (size_t)(e * d) * sizeof(double));
-        memset(adj.sq_bar, 0, (size_t)(e * d) * sizeof(double));
-        memset(adj.cov_bar, 0, (size_t)(d * d) * sizeof(double));
-        mean_gain_adjoint(&sz, &it, &g, m_bar, &gr, &adj);
-        if (pairs && need_ops) {
-            const double *sums = work + b * sz.p, *bars = sum_bar + b * sz.p;
-            if (fused) /* G_A, G_B from the forward, times S̄ */
-                pairs_adjoint(&sz, &it, &g, sums, bars, ops + b * sz.p * block, ops + (count + b * sz.p) * block,
-                              bars, &gr, &adj);
-            else /* the recomputed adjoints, S̄ included */
-                pairs_adjoint(&sz, &it, &g, sums, bars, ga + b * sz.p * block, gb + b * sz.p * block, ones, &gr,
-                              &adj);
-        }
-        /* ν = x − μ; c² chains into c */
-        for (int64_t i = 0; i < n; ++i)
-            for (int64_t k = 0; k < d; ++k) {
-                const double bar = adj.nu_bar[i * d + k];
-                if (gr.inputs)
-                    gr.inputs[i * d + k] += bar;
-                if (gr.mean)
-                    gr.mean[k] -= bar;
-            }
-        if (gr.inv_ls)
-            for (int64_t a = 0; a < e; ++a)
-                for (int64_t k = 0; k < d; ++k)
-                    gr.inv_ls[a * d + k] += adj.c_bar[a * d + k] + 2.0 * it.inv_ls[a * d + k] * adj.sq_bar[a * d + k];
-        if (gr.cov)
-            for (int64_t i = 0; i < d * d; ++i)
-                gr.cov[i] += adj.cov_bar[i];
     }
     free(w_bar);
     free(gb);

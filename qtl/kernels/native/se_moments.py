@@ -11,13 +11,14 @@ gradients NaN) and reported as :func:`qtl.gaussian.failed_elements` says: raised
 from __future__ import annotations
 
 import ctypes
+import functools
 import math
 
 import torch  # first: the library then shares the libgomp torch has loaded
 from torch import Tensor
 from torch.autograd.function import FunctionCtx, once_differentiable
 
-from qtl.gaussian import failed_elements
+from qtl.gaussian import batch_shapes, failed_elements
 from qtl.kernels.native.loader import binding_once, load_binding
 
 _PTR, _INT64, _INT = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int
@@ -28,6 +29,12 @@ _INNER = (1, 2, 2, 2, 2, 1, 3)
 _NUM_OPERANDS = len(_INNER)
 _STATUS_NOT_PD = 2
 _STATUS_ITEMS_FAILED = 3  # some items flagged as failed (their outputs NaN); the others computed
+# Below this many n x n exp-sum entries (items x pairs x n²) a call runs on one thread: a parallel region
+# costs more than it saves there (e.g. the RBF policy's n = 50), and the sums are the same for any thread count.
+_PARALLEL_ENTRIES = 1 << 15
+
+# The (shape, strides) of each operand: what the library's batch arguments depend on.
+Layout = tuple[tuple[torch.Size, tuple[int, ...]], ...]
 
 
 class SEMomentsLibrary:
@@ -43,7 +50,12 @@ class SEMomentsLibrary:
         self._lib = lib
 
     def forward(
-        self, operands: tuple[Tensor, ...], batch: torch.Size, with_grads: bool, lower_pairs: bool = True
+        self,
+        operands: tuple[Tensor, ...],
+        batch: torch.Size,
+        with_grads: bool,
+        lower_pairs: bool = True,
+        layout: Layout | None = None,
     ) -> tuple[Tensor, Tensor, Tensor, Tensor, ctypes.Array | None]:
         """Mean `*batch x E`, cov `*batch x E x E` (no model variance), gain `*batch x D x E`, the work buffer, flags.
 
@@ -53,6 +65,7 @@ class SEMomentsLibrary:
         their lower triangles (S_aa is symmetric: E of the E(E+1)/2 sums at half cost); False: every pair's
         full n x n sum (the form before; benchmarks and tests). The flags (`items` bytes, or None where no item
         failed) are 1 for the items whose B_a or R_ab is not positive-definite (their outputs NaN), else 0.
+        ``layout``: the operands' (shape, strides) (:func:`_layout`), where the caller has them already.
         """
         inputs, beta = operands[2], operands[3]
         n, d, e = inputs.shape[-2], inputs.shape[-1], beta.shape[-2]
@@ -65,9 +78,9 @@ class SEMomentsLibrary:
         work = mean.new_empty(items * (pairs + e + (2 * pairs * n * (d + 2) if with_grads else 0)))
         flags = (ctypes.c_ubyte * max(items, 1))()  # ctypes, not a tensor: no dispatched op where none fails
         status = self._lib.qtl_se_moments_forward(
-            _pointers(operands), *_batch_args(operands, batch), n, d, e,
+            _pointers(operands), *_batch_args(layout or _layout(operands), batch), n, d, e,
             out_mean.data_ptr(), out_cov.data_ptr(), gain.data_ptr(), work.data_ptr(), ctypes.addressof(flags),
-            int(with_grads), int(lower_pairs), torch.get_num_threads(),
+            int(with_grads), int(lower_pairs), _threads(items * pairs * n * n),
         )  # fmt: skip
         if status == _STATUS_ITEMS_FAILED:
             return out_mean, out_cov, gain, work, flags
@@ -89,21 +102,15 @@ class SEMomentsLibrary:
         ``failed``: the forward pass's flags where any item failed (its gradients NaN), else None.
         """
         grads = [torch.zeros(t.shape, dtype=t.dtype) if need else None for t, need in zip(operands, needs, strict=True)]
-        ndim = len(batch)
-        out_strides: list[int] = []
-        for g, inner in zip(grad_outputs, (1, 2, 2), strict=True):  # shapes `*batch x ...`: strides as they are
-            strides = (0,) * (ndim + inner) if g is None else g.stride()
-            out_strides += [*strides, *(0,) * (2 - inner)]
-        grad_strides = [
-            s
-            for g, t, inner in zip(grads, operands, _INNER, strict=True)
-            for s in (_aligned_strides(g if g is not None else t, inner, ndim))
-        ]
+        layout = _layout(operands)
+        out_layout = tuple(None if g is None else g.stride() for g in grad_outputs)
+        out_strides, grad_strides = _grad_strides(layout, batch, needs, out_layout)
+        n, d, e = _sizes(operands)
         status = self._lib.qtl_se_moments_backward(
-            _pointers(operands), *_batch_args(operands, batch), *_sizes(operands),
+            _pointers(operands), *_batch_args(layout, batch), n, d, e,
             work.data_ptr(), None if failed is None else ctypes.addressof(failed), int(fused),
-            _pointers(grad_outputs), _int64s(out_strides), _pointers(grads), _int64s(grad_strides),
-            torch.get_num_threads(),
+            _pointers(grad_outputs), out_strides, _pointers(grads), grad_strides,
+            _threads(math.prod(batch) * (e * (e + 1) // 2) * n * n),
         )  # fmt: skip
         _raise_for(status)
         return grads
@@ -133,25 +140,74 @@ def _int64s(values: list[int]) -> ctypes.Array:
     return (ctypes.c_int64 * max(1, len(values)))(*values)
 
 
-def _aligned_strides(t: Tensor, inner: int, ndim: int) -> tuple[int, ...]:
-    """The strides of ``t``'s leading dimensions (all but ``inner`` trailing ones) aligned right to ``ndim`` batch
-    dimensions: 0 where ``t`` lacks the dimension or has size 1 (broadcast); then nothing of the inner ones."""
-    lead = t.dim() - inner
-    strides = [0] * (ndim - lead) + [
-        0 if size == 1 else stride for size, stride in zip(t.shape[:lead], t.stride(), strict=False)
-    ]
-    return tuple(strides)
+def _threads(entries: int) -> int:
+    """The threads of a call whose exp sums have ``entries`` n x n terms: torch's, or one for a small call."""
+    return torch.get_num_threads() if entries >= _PARALLEL_ENTRIES else 1
 
 
-def _batch_args(operands: tuple[Tensor, ...], batch: torch.Size) -> tuple[int, ctypes.Array, ctypes.Array]:
-    """ndim, the batch sizes and every operand's batch strides (`7 x ndim`), as the library takes them."""
+def _aligned_strides(shape: torch.Size, strides: tuple[int, ...], inner: int, ndim: int) -> tuple[int, ...]:
+    """The strides of a tensor's leading dimensions (all but ``inner`` trailing ones) aligned right to ``ndim`` batch
+    dimensions: 0 where it lacks the dimension or has size 1 (broadcast); then nothing of the inner ones."""
+    lead = len(shape) - inner
+    lead_strides = (0 if size == 1 else stride for size, stride in zip(shape[:lead], strides[:lead], strict=True))
+    return (0,) * (ndim - lead) + tuple(lead_strides)
+
+
+def _dense_strides(shape: torch.Size) -> tuple[int, ...]:
+    """The strides of a contiguous tensor of ``shape``."""
+    strides, step = [], 1
+    for size in reversed(shape):
+        strides.append(step)
+        step *= size
+    return tuple(reversed(strides))
+
+
+def _layout(operands: tuple[Tensor, ...]) -> Layout:
+    """Each operand's (shape, strides): the key of the cached batch arguments."""
+    return tuple((t.shape, t.stride()) for t in operands)
+
+
+@functools.lru_cache(maxsize=256)
+def _operand_batch(layout: Layout) -> torch.Size:
+    """The broadcast batch shape of the operands of ``layout`` (all but their trailing dimensions), cached."""
+    return batch_shapes(*(shape[: len(shape) - inner] for (shape, _), inner in zip(layout, _INNER, strict=True)))
+
+
+@functools.lru_cache(maxsize=256)
+def _batch_args(layout: Layout, batch: torch.Size) -> tuple[int, ctypes.Array, ctypes.Array]:
+    """ndim, the batch sizes and every operand's batch strides (`7 x ndim`), as the library takes them (read only).
+
+    Cached by the operands' shapes and strides: the C arrays are made once per layout, not per call.
+    """
     ndim = len(batch)
-    strides = [s for t, inner in zip(operands, _INNER, strict=True) for s in _aligned_strides(t, inner, ndim)]
+    strides = [
+        s for (shape, st), inner in zip(layout, _INNER, strict=True) for s in _aligned_strides(shape, st, inner, ndim)
+    ]
     return ndim, _int64s(list(batch)), _int64s(strides)
+
+
+@functools.lru_cache(maxsize=256)
+def _grad_strides(
+    layout: Layout, batch: torch.Size, needs: tuple[bool, ...], out_layout: tuple[tuple[int, ...] | None, ...]
+) -> tuple[ctypes.Array, ctypes.Array]:
+    """The output gradients' strides (`3 x (ndim + 2)`, their own) and the operand gradients' batch strides
+    (`7 x ndim`: dense buffers of the operands' shapes where ``needs`` says, else the operands'), as C arrays."""
+    ndim = len(batch)
+    out_strides: list[int] = []
+    for strides, inner in zip(out_layout, (1, 2, 2), strict=True):  # shapes `*batch x ...`: strides as they are
+        out_strides += [*((0,) * (ndim + inner) if strides is None else strides), *(0,) * (2 - inner)]
+    grad_strides = [
+        s
+        for (shape, strides), inner, need in zip(layout, _INNER, needs, strict=True)
+        for s in _aligned_strides(shape, _dense_strides(shape) if need else strides, inner, ndim)
+    ]
+    return _int64s(out_strides), _int64s(grad_strides)
 
 
 def _trailing_contiguous(t: Tensor, inner: int) -> Tensor:
     """``t``, or a contiguous copy when its ``inner`` trailing dimensions are not laid out row-major."""
+    if t.is_contiguous():
+        return t
     expected = 1
     for size, stride in zip(reversed(t.shape[t.dim() - inner :]), reversed(t.stride()[t.dim() - inner :]), strict=True):
         if size != 1 and stride != expected:
@@ -194,11 +250,12 @@ class NativeSEKernelMoments(torch.autograd.Function):
             _trailing_contiguous(t, inner)
             for t, inner in zip((mean, cov, inputs, beta, inv_ls, log_sf2, weights), _INNER, strict=True)
         )
-        batch = torch.broadcast_shapes(*(t.shape[: t.dim() - inner] for t, inner in zip(operands, _INNER, strict=True)))
+        layout = _layout(operands)
+        batch = _operand_batch(layout)
         needs = tuple(ctx.needs_input_grad[:_NUM_OPERANDS]) if grad_enabled else (False,) * _NUM_OPERANDS
         need_ops = any(needs[i] for i in (0, 1, 2, 4, 5))  # all but beta enter the exp sums' operands
         ctx.fused = need_ops and not needs[6]
-        out_mean, out_cov, gain, work, flags = library.forward(operands, batch, ctx.fused, lower_pairs)
+        out_mean, out_cov, gain, work, flags = library.forward(operands, batch, ctx.fused, lower_pairs, layout)
         if flags is not None:  # raises outside qtl.gaussian.element_failures
             failed = torch.frombuffer(flags, dtype=torch.uint8)[: math.prod(batch)].view(batch).bool()
             failed_elements(failed, what="the native SE-kernel moments (a B_a or R_ab)")
