@@ -41,6 +41,7 @@ DEFAULT_HORIZON = 50  # decisions (5 s)
 DEFAULT_START_STD = 0.1  # x_0 ~ N(0, 0.1² I)
 DEFAULT_OBS_NOISE_STD = 0.0
 DEFAULT_REWARD_WIDTH = 0.25  # σ_c, m
+DEFAULT_TRACK_LIMIT = None  # m, half the track's length; None: an unbounded track that never ends an episode
 
 # Rendering: a window on the origin that follows the cart only when the cart would leave it.
 _RENDER_WIDTH_PX = 600
@@ -48,6 +49,7 @@ _RENDER_HALF_WIDTH = 2.4  # m of track either side of the view centre
 _RENDER_CART_SIZE = (0.4, 0.2)  # m
 _RENDER_POLE_WIDTH = 0.05  # m
 _RENDER_MARGIN = 0.25  # m around the swept disc of the pole
+_RENDER_END_HEIGHT = 0.15  # m above and below the track, the marks of a track_limit
 
 
 class CartPoleSwingUpEnv(gymnasium.Env):
@@ -56,9 +58,9 @@ class CartPoleSwingUpEnv(gymnasium.Env):
 
     The cart-pole swing-up of PILCO (Deisenroth & Rasmussen, 2011) as used by the QTL paper: a
     uniform rod of length `l` and mass `m` hangs from a cart of mass `M` that a horizontal force
-    `u` drives along an unbounded track with viscous friction `b`. The pole starts hanging down
-    and must be swung up and balanced with its tip above the track origin. The transfer tasks
-    change `pole_mass` (source 0.5 kg; targets 0.8, 1.0, 1.5, 2.0 kg).
+    `u` drives along a track with viscous friction `b`, unbounded unless `track_limit` is set.
+    The pole starts hanging down and must be swung up and balanced with its tip above the track
+    origin. The transfer tasks change `pole_mass` (source 0.5 kg; targets 0.8, 1.0, 1.5, 2.0 kg).
 
     With θ = 0 hanging down and θ = π upright, the tip is at (x + l sin θ, −l cos θ) and
 
@@ -105,10 +107,18 @@ class CartPoleSwingUpEnv(gymnasium.Env):
     the origin, nearly at rest. `reset(options={"state": s})` starts from the given state
     s = [x, ẋ, θ, θ̇] (4 finite numbers) instead.
 
+    ## Episode Termination
+
+    By default the episode never terminates (the swing-up on an unbounded track has no terminal
+    states). With `track_limit` set, it terminates (`terminated=True`) at the first step whose
+    successor state (noise free) has |x| > `track_limit`, the cart off the end of its track, as
+    gymnasium's CartPole does at |x| > 2.4; that step's reward is still the reward of its state.
+    The task's YAML declares the same bound as a constraint (`task.constraints`), which is what
+    the learner reads: the env only enforces it.
+
     ## Episode Truncation
 
-    The episode never terminates (the swing-up has no terminal states); it is truncated after
-    `horizon` steps (default 50, i.e. 5 s).
+    The episode is truncated after `horizon` steps (default 50, i.e. 5 s).
 
     ## Arguments
 
@@ -128,6 +138,8 @@ class CartPoleSwingUpEnv(gymnasium.Env):
     - `obs_noise_std`: std of the Gaussian observation noise; TASKS.md's optional value is 0.01
       (default 0).
     - `reward_width`: σ_c of the reward in m (default 0.25).
+    - `track_limit`: half the track's length in m: the episode terminates once |x| exceeds it
+      (default `None`, an unbounded track; `task=cartpole_track` sets 0.5).
     - `render_mode`: `None` or `"rgb_array"`.
 
     ```python
@@ -157,6 +169,7 @@ class CartPoleSwingUpEnv(gymnasium.Env):
         start_std: float | tuple[float, ...] = DEFAULT_START_STD,
         obs_noise_std: float = DEFAULT_OBS_NOISE_STD,
         reward_width: float = DEFAULT_REWARD_WIDTH,
+        track_limit: float | None = DEFAULT_TRACK_LIMIT,
         render_mode: str | None = None,
     ) -> None:
         # Checked in this order, so the first bad argument is the one reported.
@@ -170,6 +183,7 @@ class CartPoleSwingUpEnv(gymnasium.Env):
         self.friction = nonnegative("friction", friction)
         self.gravity = nonnegative("gravity", gravity)
         self.obs_noise_std = nonnegative("obs_noise_std", obs_noise_std)
+        self.track_limit = None if track_limit is None else positive("track_limit", track_limit)
         require(integrator_dt <= dt, "integrator_dt", integrator_dt, f"<= dt = {dt}")
         self.horizon = positive_integer("horizon", horizon)
         self.start_mean = np.zeros(STATE_DIM)
@@ -291,11 +305,12 @@ class CartPoleSwingUpEnv(gymnasium.Env):
         self.last_force = force
         self._steps += 1
         reward = float(self.reward_spec(self.state))
+        terminated = self.track_limit is not None and abs(float(self.state[0])) > self.track_limit
         truncated = self._steps >= self.horizon
-        return self._observe(), reward, False, truncated, {"state": self.state.copy()}
+        return self._observe(), reward, terminated, truncated, {"state": self.state.copy()}
 
     def render(self) -> np.ndarray | None:
-        """An `H x W x 3` `uint8` frame: track, cart, pole, target tip (cross) and force arrow."""
+        """An `H x W x 3` `uint8` frame: track (its ends in red if limited), cart, pole, target tip and force arrow."""
         if self.render_mode is None:
             _render.warn_no_render_mode()
             return None
@@ -318,6 +333,9 @@ class CartPoleSwingUpEnv(gymnasium.Env):
         canvas.line((center - half_width, 0.0), (center + half_width, 0.0), 0.02, _render.GREY)
         for tick in np.arange(np.ceil(center - half_width), center + half_width + 1e-9):
             canvas.line((tick, -0.03), (tick, 0.03), 0.015, _render.GREY)
+        if self.track_limit is not None:  # the track's ends, where the episode terminates
+            for end in (-self.track_limit, self.track_limit):
+                canvas.line((end, -_RENDER_END_HEIGHT), (end, _RENDER_END_HEIGHT), 0.02, _render.RED)
         # Target tip position (0, l).
         arm = 0.06
         canvas.line((-arm, ell - arm), (arm, ell + arm), 0.02, _render.RED)

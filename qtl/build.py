@@ -25,6 +25,7 @@ from qtl.models import DynamicsGP, GPHyperparameters, ModelFit, PreviousFit
 from qtl.policies import Policy, SquashedPolicy
 from qtl.policy_search import SearchResult
 from qtl.propagation import PropagatorFactory
+from qtl.propagation.integration import modelled_outputs
 from qtl.propagation.objective import is_shaped
 from qtl.rewards import AngleDistanceReward, ExpectedSaturatingReward
 from qtl.seeding import ENV_STREAM, POLICY_INIT_STREAM, derive_seed, torch_generator
@@ -88,6 +89,12 @@ class Parts:
     make_policy: PolicyFactory  # the ``policy`` group
     engine: Engine  # the code that computes moments and exp sums (``kernels.*``, resolved), in every propagator
     search_reward: str = "task"  # what the policy search scores, by name (:func:`search_reward_name`)
+    outputs: tuple[int, ...] | None = None  # the state dimensions the GP models (propagation.integration); None: all
+
+    @property
+    def modelled(self) -> tuple[int, ...]:
+        """The state dimensions the dynamics GP models: all but the positions under speed integration, else all."""
+        return tuple(range(self.task.state_dim)) if self.outputs is None else self.outputs
 
     @property
     def kernel_backend(self) -> str:
@@ -108,10 +115,15 @@ class Parts:
     ) -> DynamicsGP:
         """θ_p by evidence maximisation on all tuples (line 12), from ``start`` or PILCO's heuristic, on the device.
 
-        ``previous``: the last episode's fit, where ``model.warm_start`` starts from (ignored when off).
+        The GP is fitted on the modelled outputs' Δ only (:attr:`modelled`). ``previous``: the last episode's fit,
+        where ``model.warm_start`` starts from (ignored when off).
         """
         inputs, targets = gp_training_pairs(data, self.features, self.dtype, self.device)
-        return self.model.fit(inputs, targets, start=start, generator=generator, previous=previous)
+        outputs = self.modelled
+        if outputs != tuple(range(targets.shape[-1])):
+            targets = targets[:, list(outputs)]
+        return self.model.fit(inputs, targets, start=start, generator=generator, previous=previous, outputs=outputs,
+                              state_dim=self.task.state_dim)
 
     def actor(self, policy: Policy) -> Actor:
         """u = π(φ(x)) on real observations (line 11)."""
@@ -168,6 +180,7 @@ def build(cfg: DictConfig) -> Parts:
     check_dropout(cfg)
     make_propagator = _with_search_cost(make_propagator, task, cfg)
     make_propagator = _with_kinematics(make_propagator, task, cfg)
+    make_propagator = _with_constraints(make_propagator, task)
     make_propagator = functools.partial(make_propagator, engine=engine)
     parts = Parts(
         seed=int(cfg.seed),
@@ -183,6 +196,7 @@ def build(cfg: DictConfig) -> Parts:
         make_policy=instantiate(cfg.policy),
         engine=engine,
         search_reward=search_reward_name(make_propagator),
+        outputs=modelled_outputs(str(cfg.propagation.get("integration", "delta")), task.state_dim, task.kinematics),
     )
     check_lr_scales(parts.search, parts.initial_policy)
     return parts
@@ -251,8 +265,16 @@ def _with_kinematics(make_propagator: PropagatorFactory, task: Task, cfg: DictCo
     return functools.partial(make_propagator, kinematics=task.kinematics)
 
 
+def _with_constraints(make_propagator: PropagatorFactory, task: Task) -> PropagatorFactory:
+    """A task that declares state bounds has them bound to its propagators (``qtl.constraints``); else unchanged."""
+    if not task.constraints:
+        return make_propagator
+    return functools.partial(make_propagator, constraints=task.constraints)
+
+
 def transfer_plan(cfg: DictConfig, parts: Parts) -> TransferPlan:
     """The run's transfer plan (``cfg.transfer`` with the ``rule``): the source run loaded and checked."""
     rule = instantiate_checked(cfg.rule)
     check_transfer(cfg.transfer, rule)
-    return TransferPlan(cfg.transfer, rule, parts.task, parts.features, parts.dtype, parts.device)
+    return TransferPlan(cfg.transfer, rule, parts.task, parts.features, parts.dtype, parts.device,
+                        outputs=parts.modelled)

@@ -11,6 +11,7 @@ import gymnasium
 import numpy as np
 import torch
 
+from qtl.constraints import Constraint
 from qtl.data import TransitionDataset, gp_training_pairs
 from qtl.errors import NonFiniteObjective
 from qtl.features import AngleFeatures
@@ -92,6 +93,7 @@ def one_step_smse(model: DynamicsGP, episode: Episode, features: AngleFeatures, 
     data = TransitionDataset(episode.states.shape[1], episode.actions.shape[1], features.angle_dims)
     data.add_episode(episode.states, episode.actions)
     inputs, targets = gp_training_pairs(data, features, dtype, model.train_x.device)
+    targets = targets[:, list(model.outputs)]  # the state dimensions the model's outputs are
     mean, _ = model.predict(inputs)
     mse = ((mean - targets) ** 2).mean(0)
     return float((mse / model.train_y.var(0)).mean())
@@ -104,11 +106,13 @@ def prediction_figure(
     real: Episode,
     title: str,
     state_names: Sequence[str] | None = None,
+    constraints: Sequence[Constraint] = (),
 ) -> Figure | None:
     """The predicted state distribution of the policy over H steps against what the real system did.
 
-    A real episode the env ended before the horizon is marked where it ended. None (with a
-    warning) when the predicted rollout breaks down numerically.
+    A real episode the env ended before the horizon is marked where it ended; the region beyond
+    each of the task's ``constraints`` is shaded. None (with a warning) when the predicted rollout
+    breaks down numerically.
     """
     try:
         with torch.no_grad():
@@ -120,4 +124,4 @@ def prediction_figure(
     std = torch.diagonal(predicted.cov, dim1=-2, dim2=-1).clamp_min(0).sqrt().cpu().numpy()
     ended = real.length if real.length < horizon else None
     return trajectory_figure(mean, std, real.states, title, state_names=state_names, ended_at=ended,
-                             ended_label="terminated" if real.terminated else "ended")
+                             ended_label="terminated" if real.terminated else "ended", constraints=constraints)

@@ -21,7 +21,8 @@ LINALG = "linalg_failures"  # evaluations whose rollout failed in a factorisatio
 SEARCH_STOPPED = "search_runs_stopped"  # policy-search runs (restarts) ended early at a numerically invalid ψ
 JITTER = "cholesky_jitter"  # Cholesky factorisations retried with jitter on the diagonal (recovered, or not)
 GP_FIT_FAILED = "gp_fit_failures"  # GP-fit runs discarded, or resumed after a failed line-search step
-EVENTS = (NONFINITE, LINALG, SEARCH_STOPPED, JITTER, GP_FIT_FAILED)
+CONSTANT_OUTPUTS = "constant_outputs"  # outputs a model fit found with a constant Δ and modelled as deterministic
+EVENTS = (NONFINITE, LINALG, SEARCH_STOPPED, JITTER, GP_FIT_FAILED, CONSTANT_OUTPUTS)
 JITTER_MESSAGE = "added jitter"  # in linear_operator's warning "A not p.d., added jitter of ... to the diagonal"
 
 log = logging.getLogger(__name__)

@@ -139,14 +139,18 @@ def write_outcomes(writer: SummaryWriter, values: Mapping[str, float], step: int
     writer.flush()
 
 
-def scalar_layout(num_outputs: int, input_dim: int) -> dict[str, dict[str, list[Any]]]:
-    """Custom scalar charts: real vs predicted return; per output dimension, θ_i and θ_p_i of each hyper-parameter."""
+def scalar_layout(num_outputs: int, input_dim: int,
+                  outputs: Sequence[int] | None = None) -> dict[str, dict[str, list[Any]]]:
+    """Custom scalar charts: real vs predicted return; per output dimension, θ_i and θ_p_i of each hyper-parameter.
+
+    ``outputs``: the state dimension each output models (default 0..E−1), which names its charts.
+    """
     layout: dict[str, dict[str, list[Any]]] = {
         RETURNS_CATEGORY: {RETURN_CHART: ["Multiline", [f"^{re.escape(t)}$" for t in RETURN_TAGS]]}}
-    for j in range(num_outputs):
+    for j in range(num_outputs) if outputs is None else outputs:
         prefix = f"out{j}/"
         charts = {}
-        for key in GPHyperparameters.keys(num_outputs, input_dim):
+        for key in GPHyperparameters.keys(num_outputs, input_dim, outputs):
             if key.startswith(prefix):
                 charts[key] = ["Multiline", [f"^{re.escape(f'{p}/{key}')}$" for p in (THETA_PREFIX, THETA_P_PREFIX)]]
         layout[THETA_CATEGORY.format(output=f"out{j}")] = charts
@@ -158,7 +162,7 @@ def start_dashboards(writer: SummaryWriter, cfg: DictConfig, task: Task, plan: T
     rule = plan.rule.name
     gamma = getattr(plan.rule, "gamma", 0.0 if rule in RULES_WITH_ZERO_GAMMA else None)
     write_session(writer, run_hparams(cfg, approach_of(plan.source is not None, rule), rule, gamma))
-    writer.add_custom_scalars(scalar_layout(task.state_dim, task.gp_input_dim))
+    writer.add_custom_scalars(scalar_layout(len(plan.outputs), task.gp_input_dim, plan.outputs))
     write_run_text(writer, OmegaConf.to_yaml(cfg, resolve=True), plan.describe())
     writer.flush()
 

@@ -22,6 +22,7 @@ from tqdm.contrib.logging import logging_redirect_tqdm
 from qtl import health
 from qtl.build import Parts, build, transfer_plan
 from qtl.checkpoint import prune_checkpoints, refuse_existing_run, run_checkpoint
+from qtl.constraints import crossed, half_survival_step, terminating
 from qtl.data import TransitionDataset
 from qtl.episodes import Episode, one_step_smse, prediction_figure, random_actor, run_episode
 from qtl.frames import episode_video
@@ -130,7 +131,7 @@ def initial_episode(cfg: DictConfig, parts: Parts, state: RunState, env: gymnasi
     else:
         actor, kind = random_actor(parts.task, np.random.default_rng(state.stream(ACTION_STREAM))), "random"
     real = run_episode(env, parts.task, actor, state.stream(ENV_STREAM))
-    row = {"episode": state.episodes, "kind": kind, "predicted_return": math.nan}
+    row = {"episode": state.episodes, "kind": kind, "predicted_return": math.nan, "predicted_survival": math.nan}
     return EpisodeResult(real, {**row, **_real_columns(parts.task, real)})
 
 
@@ -146,7 +147,7 @@ def learned_episode(cfg: DictConfig, parts: Parts, state: RunState, env: gymnasi
     compliance = plan.compliance(model)  # Eq. 14 (NaN without a source)
     # -- Lines 2, 13 and 5: θ_0 = θ_s, then the updating rule; f inferred with θ. ------------------------
     # (Λ below transfer.min_compliance here at the first model: θ = θ_p and ψ = PILCO's ψ_0.)
-    state.theta = plan.update(theta_p, len(state.data), compliance, state.policy)
+    state.theta = plan.update(theta_p, len(state.data), compliance, state.policy, model.outputs)
     if state.theta is not theta_p:
         model.hyperparameters = state.theta
     fit_s = time.perf_counter() - tic
@@ -164,18 +165,19 @@ def learned_episode(cfg: DictConfig, parts: Parts, state: RunState, env: gymnasi
                              generator=state.generator(SEARCH_STREAM), tick=functools.partial(evals.update, 1))
     search_s = time.perf_counter() - tic
     predicted = predicted_return(propagator, found, parts.search_reward, start, task.horizon)
+    row.update(predicted_survival(propagator, task, start))  # S_H and where S_t < 0.5 (task.constraints)
 
     # -- Lines 10-11: apply π(ψ) on the real system to obtain more tuples. -----------------------------
     seed = state.stream(ENV_STREAM)
     real = run_episode(env, task, parts.actor(state.policy), seed)
     row.update(kind="policy", predicted_return=predicted, model_smse=one_step_smse(model, real, parts.features,
                parts.dtype), model_log_evidence=log_evidence(model), policy_evaluations=found.evaluations,
-               compliance=compliance, fallback=int(plan.fallen_back), **theta_row(state.theta),
-               **theta_row(theta_p, THETA_P_PREFIX))
+               compliance=compliance, fallback=int(plan.fallen_back), **theta_row(state.theta, outputs=model.outputs),
+               **theta_row(theta_p, THETA_P_PREFIX, model.outputs))
     figure = video = None
     if cfg.figure_every > 0 and (state.episodes - cfg.random_episodes) % cfg.figure_every == 0:
         figure = prediction_figure(propagator, start, task.horizon, real, f"episode {state.episodes}: predicted vs "
-                                   "real", task.state_names)
+                                   "real", task.state_names, task.constraints)
         video = episode_video(task, real, seed) if cfg.get("video", True) else None  # the same episode, rendered
     return EpisodeResult(real, {**row, **_real_columns(task, real)}, fit_s, search_s, figure, video)
 
@@ -192,7 +194,8 @@ def _real_columns(task: Task, real: Episode) -> dict[str, Any]:
     """The ``metrics.csv`` columns of what an episode did on the real system: returns, success, length, distance."""
     return {"return": float(real.rewards.sum()), "env_return": float(real.env_rewards.sum()),
             "success": int(task.succeeded(real.states)), "length": len(real.rewards),
-            "final_distance": float(task.distance(real.states[-1:])[0])}
+            "final_distance": float(task.distance(real.states[-1:])[0]),
+            "crossed": int(crossed(task.constraints, real.states))}
 
 
 def _open_recorder(cfg: DictConfig, output_dir: Path, task: Task, state: RunState, total: int,
@@ -203,8 +206,9 @@ def _open_recorder(cfg: DictConfig, output_dir: Path, task: Task, state: RunStat
                  output_dir, state.episodes, total)
     elif state.resumed_at is not None:
         log.info("resuming %s after episode %d", output_dir, state.episodes - 1)
-    columns = (BASE_COLUMNS + theta_columns(task.state_dim, task.gp_input_dim)
-               + theta_columns(task.state_dim, task.gp_input_dim, THETA_P_PREFIX)
+    modelled = state.plan.outputs  # θ's columns name the state dimensions the GP models
+    columns = (BASE_COLUMNS + theta_columns(len(modelled), task.gp_input_dim, outputs=modelled)
+               + theta_columns(len(modelled), task.gp_input_dim, THETA_P_PREFIX, modelled)
                + (start_columns(task.state_dim) if task.start_estimated else []))
     if state.episodes < total:
         log.info("%s", state.plan.describe())
@@ -237,6 +241,20 @@ def predicted_return(
         return found.value
     with torch.no_grad():
         return float(propagator.rollout(start, horizon).value)
+
+
+def predicted_survival(propagator: Propagator, task: Task, start: Gaussian) -> dict[str, float]:
+    """S_H of the found ψ's prediction and the first step t with S_t < 0.5 (NaN: never), as ``metrics.csv`` columns.
+
+    One more rollout, without gradients, where the task declares terminate constraints (``qtl.constraints``);
+    none: S_H = 1 and no rollout.
+    """
+    if not terminating(task.constraints):
+        return {"predicted_survival": 1.0, "survival_half_step": math.nan}
+    with torch.no_grad():
+        survival = propagator.rollout(start, task.horizon).survival
+    half = half_survival_step(survival)
+    return {"predicted_survival": float(survival[-1]), "survival_half_step": math.nan if half is None else half}
 
 
 def _resume_point(output_dir: Path, resume: bool) -> dict[str, Any] | None:

@@ -12,11 +12,13 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from torch.utils.tensorboard import SummaryWriter
 
+from qtl.constraints import Constraint
 from qtl.health import EVENTS
 from qtl.models import GPHyperparameters
 from qtl.video import Clip, video_summary
 
 if TYPE_CHECKING:  # matplotlib loads only where a figure is drawn (~0.7 s off every CLI start)
+    from matplotlib.axes import Axes
     from matplotlib.figure import Figure
 
 FIGURE_TAG = "rollout/predicted_vs_real"  # the predicted-vs-real figure of an episode (``figure_every``)
@@ -32,6 +34,8 @@ TIMING_COLUMNS = ["episode", "model_fit_s", "policy_search_s", "episode_s"]  # e
 # Numerical trouble per episode (qtl.health's counts) and whether the episode began a resumed session.
 HEALTH_FILE = "health.csv"
 HEALTH_COLUMNS = ["episode", "resumed", *EVENTS]
+# Of a panel's range, how much of a shaded region beyond a bound stays in view (the prediction figure's constraints).
+BOUND_MARGIN = 0.1
 BASE_COLUMNS = [
     "episode",
     "kind",
@@ -46,15 +50,20 @@ BASE_COLUMNS = [
     "policy_evaluations",
     "compliance",  # task compliance Λ (Eq. 14) of the tuples the episode's model learned from
     "fallback",  # 1 once the compliance gate has switched the run to PILCO
+    "predicted_survival",  # S_H of the prediction under the task's terminate constraints (1: none; qtl.constraints)
+    "survival_half_step",  # the first step t with S_t < 0.5 (empty: never)
+    "crossed",  # 1 if the real episode's states left a declared bound (any kind), else 0
 ]
 
 
-def theta_columns(num_outputs: int, input_dim: int, prefix: str = THETA_PREFIX) -> list[str]:
-    """``<prefix>/out{j}/lengthscale/in{i}``, ``…/signal_variance``, ``…/noise_variance`` column names.
+def theta_columns(num_outputs: int, input_dim: int, prefix: str = THETA_PREFIX,
+                  outputs: Sequence[int] | None = None) -> list[str]:
+    """``<prefix>/out{d}/lengthscale/in{i}``, ``…/signal_variance``, ``…/noise_variance`` column names.
 
     ``theta``: θ_i, what the episode's model used; ``theta_p``: θ_p_i, what evidence maximisation found.
+    ``outputs``: the state dimension d each output models (default 0..E−1).
     """
-    return [f"{prefix}/{key}" for key in GPHyperparameters.keys(num_outputs, input_dim)]
+    return [f"{prefix}/{key}" for key in GPHyperparameters.keys(num_outputs, input_dim, outputs)]
 
 
 def start_columns(state_dim: int) -> list[str]:
@@ -68,9 +77,10 @@ def start_row(mean: np.ndarray, std: np.ndarray) -> dict[str, float]:
             **{f"{START_PREFIX}/std/{i}": float(s) for i, s in enumerate(std)}}
 
 
-def theta_row(theta: GPHyperparameters | None, prefix: str = THETA_PREFIX) -> dict[str, float]:
-    """θ as ``{column: value}`` (empty when there is no model yet)."""
-    return {} if theta is None else {f"{prefix}/{k}": v for k, v in theta.as_dict().items()}
+def theta_row(theta: GPHyperparameters | None, prefix: str = THETA_PREFIX,
+              outputs: Sequence[int] | None = None) -> dict[str, float]:
+    """θ as ``{column: value}`` (empty when there is no model yet); ``outputs`` as :func:`theta_columns`."""
+    return {} if theta is None else {f"{prefix}/{k}": v for k, v in theta.as_dict(outputs).items()}
 
 
 def theta_from_row(row: Mapping[str, float | str], prefix: str = THETA_PREFIX) -> GPHyperparameters | None:
@@ -151,6 +161,9 @@ class RunRecorder:
             "model/log_evidence": row.get("model_log_evidence"),
             "transfer/compliance": row.get("compliance"),
             "transfer/fallback": row.get("fallback"),
+            "policy/predicted_survival": row.get("predicted_survival"),
+            "policy/survival_half_step": row.get("survival_half_step"),
+            "eval/crossed": row.get("crossed"),
             "time/model_fit_s": timings["model_fit_s"],
             "time/policy_search_s": timings["policy_search_s"],
             "time/episode_s": timings.get("episode_s"),
@@ -193,11 +206,13 @@ def trajectory_figure(
     state_names: Sequence[str] | None = None,
     ended_at: int | None = None,
     ended_label: str = "terminated",
+    constraints: Sequence[Constraint] = (),
 ) -> Figure:
     """Predicted mean ± 2 std `T+1 x D` against the real states `T'+1 x D`, one panel per dimension.
 
     ``state_names`` label the D panels (default ``x[0]`` … ``x[D-1]``). ``ended_at``: the step where
     the real episode ended before the horizon, marked by a vertical line "<ended_label> at step T".
+    ``constraints``: the task's state bounds, the region outside each shaded in its dimension's panel.
     """
     dims = real.shape[1]
     if state_names is None:
@@ -219,9 +234,28 @@ def trajectory_figure(
         if ended_at is not None:
             ax.axvline(ended_at, color="tab:red", linestyle="--", linewidth=1,
                        label=f"{ended_label} at step {ended_at}")
+        for c in (c for c in constraints if c.dim == d):
+            _shade_outside(ax, c)
         ax.set_ylabel(state_names[d])
     axes[0, 0].set_title(title)
     axes[0, 0].legend(loc="best", fontsize="small")
     axes[-1, 0].set_xlabel("step")
     fig.tight_layout()
     return fig
+
+
+def _shade_outside(ax: Axes, constraint: Constraint) -> None:
+    """Shade the values beyond ``constraint``'s bounds (red: terminate, orange: penalty), the bounds kept in view."""
+    color = "tab:red" if constraint.kind == "terminate" else "tab:orange"
+    bounds = [b for b in (constraint.low, constraint.high) if b is not None]
+    low, high = ax.get_ylim()
+    margin = BOUND_MARGIN * (max(high, *bounds) - min(low, *bounds))
+    low = min(low, constraint.low - margin) if constraint.low is not None else low
+    high = max(high, constraint.high + margin) if constraint.high is not None else high
+    label = f"outside bounds ({constraint.kind})"
+    if constraint.low is not None:
+        ax.axhspan(low, constraint.low, color=color, alpha=0.12, label=label)
+        label = "_nolegend_"  # one legend entry per bound
+    if constraint.high is not None:
+        ax.axhspan(constraint.high, high, color=color, alpha=0.12, label=label)
+    ax.set_ylim(low, high)

@@ -15,6 +15,7 @@ import torch
 from gymnasium.envs.registration import EnvSpec, load_env_creator
 
 import qtl.envs  # noqa: F401  (registers the qtl/ environment ids)
+from qtl.constraints import Constraint
 from qtl.env_wrappers import ActionRepeat, CenteredAction
 from qtl.envs.rewards import SaturatingReward, augment_angles
 from qtl.errors import TaskError
@@ -23,6 +24,8 @@ from qtl.gaussian import Gaussian
 # Floor on the std of a start distribution estimated from the episodes' initial states (``task.start.min_std``).
 DEFAULT_START_MIN_STD = 0.01
 SEARCH_COST_ANGLES = ("wrapped", "absolute")  # task.search_reward.angles: how δ is taken on angle dims
+# task.kinematics.weight: w of T Δq̇ in q_{t+1} = q_t + T q̇_t + w T Δq̇_t; ½ is the trapezoid rule (MC-PILCO's).
+TRAPEZOID_WEIGHT = 0.5
 
 
 class Kinematics(NamedTuple):
@@ -31,6 +34,7 @@ class Kinematics(NamedTuple):
     positions: tuple[int, ...]  # `K` state indices
     velocities: tuple[int, ...]  # `K`: position k's velocity is velocities[k]
     period: float  # T, the time between two learner steps (held env steps included)
+    weight: float = TRAPEZOID_WEIGHT  # w in q_{t+1} = q_t + T q̇_t + w T Δq̇_t: ½ trapezoid, 1 semi-implicit Euler
 
 
 @dataclass(frozen=True)
@@ -61,6 +65,7 @@ class Task:
     search_cost: tuple[np.ndarray, np.ndarray] | None = None  # (target, widths) `D` each, inf width: left out
     search_cost_angles: str = "wrapped"  # δ on its angle dims: wrapped θ − θ*, or absolute |θ| − θ* (raw angle)
     kinematics: Kinematics | None = None  # positions, their velocities and T (particles' speed integration)
+    constraints: tuple[Constraint, ...] = ()  # state bounds that end an episode or cost (``qtl.constraints``)
 
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any], env: gymnasium.Env | None = None) -> Task:
@@ -112,6 +117,7 @@ class Task:
             search_cost=_search_cost(cfg.get("search_reward")),
             search_cost_angles=_search_cost_angles(cfg.get("search_reward")),
             kinematics=kinematics,
+            constraints=tuple(Constraint.from_config(c) for c in cfg.get("constraints") or ()),
         )
 
     @property
@@ -329,17 +335,30 @@ def _search_cost_angles(cfg: Mapping[str, Any] | None) -> str:
 
 
 def _kinematics(cfg: Mapping[str, Any] | None, env: gymnasium.Env, action_repeat: int) -> Kinematics | None:
-    """``task.kinematics``, its period T the given one or the env's ``dt`` × ``action_repeat``."""
-    if cfg is None:
+    """``task.kinematics``, its period T the given one or the env's ``dt`` × ``action_repeat``; None: none declared."""
+    if not declares_kinematics(cfg):
         return None
     positions = tuple(int(p) for p in cfg.get("positions") or ())
     velocities = tuple(int(v) for v in cfg.get("velocities") or ())
     period = cfg.get("period")
-    return Kinematics(positions, velocities, float(env.dt) * action_repeat if period is None else float(period))
+    weight = cfg.get("weight")
+    return Kinematics(positions, velocities, float(env.dt) * action_repeat if period is None else float(period),
+                      TRAPEZOID_WEIGHT if weight is None else float(weight))
 
 
-def check_kinematics(state_dim: int, positions: Sequence[int], velocities: Sequence[int], period: float) -> None:
-    """Positions and velocities paired, distinct, disjoint, below ``state_dim``; T > 0: else a TaskError saying what."""
+def declares_kinematics(cfg: Mapping[str, Any] | None) -> bool:
+    """Whether a ``task.kinematics`` node declares any: null and the empty node (no positions, no velocities) do not."""
+    return cfg is not None and bool(cfg.get("positions") or cfg.get("velocities"))
+
+
+def check_kinematics(
+    state_dim: int, positions: Sequence[int], velocities: Sequence[int], period: float,
+    weight: float = TRAPEZOID_WEIGHT,
+) -> None:
+    """Positions and velocities paired, distinct, disjoint, below ``state_dim``; T > 0; 0 ≤ w ≤ 1: else a TaskError."""
+    if not 0.0 <= weight <= 1.0:
+        raise TaskError(f"task.kinematics.weight must be in [0, 1] (½: the trapezoid rule, 1: semi-implicit Euler), "
+                        f"got {weight}")
     if not positions or len(positions) != len(velocities):
         raise TaskError(f"task.kinematics needs as many velocities as positions, at least one: got positions "
                         f"{list(positions)}, velocities {list(velocities)}")

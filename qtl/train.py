@@ -30,7 +30,7 @@ from qtl.errors import CheckpointError, UserError
 from qtl.loop import RunResult, run
 from qtl.metrics import first_success
 from qtl.runs import read_run
-from qtl.task import env_settings
+from qtl.task import TRAPEZOID_WEIGHT, declares_kinematics, env_settings
 
 log = logging.getLogger(__name__)
 
@@ -73,6 +73,12 @@ def comparable(cfg: DictConfig) -> dict:
     plain["task"]["env"] = env_settings(plain["task"])
     if plain.get("transfer", {}).get("source") is None:  # no source: the other transfer keys are inert (PILCO; a
         plain["transfer"] = {"source": None}  # flag that would need one is refused before any work)
+    # Kinematics only matter to speed integration; null (older runs) and the empty node both declare none.
+    speed = plain.get("propagation", {}).get("integration") == "speed"
+    if not (speed and declares_kinematics(plain["task"].get("kinematics"))):
+        plain["task"]["kinematics"] = None
+    else:  # a run made before task.kinematics.weight integrated by the trapezoid rule
+        plain["task"]["kinematics"] = {"weight": TRAPEZOID_WEIGHT, **plain["task"]["kinematics"]}
     return plain
 
 

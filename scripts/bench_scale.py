@@ -15,7 +15,10 @@ stop early cost less. The learned episodes already in each sweep's run directori
 given too.
 
     .venv/bin/python scripts/bench_scale.py [--experiments cartpole mountaincar aircraft] [--threads 1]
-        [--repeats 3] [--seed 0] [--experiments-root DIR] [--output PATH] [--no-docs] [override ...]
+        [--repeats 3] [--seed 0] [--experiments-root DIR] [--output PATH] [--tag NAME] [--no-docs] [override ...]
+
+``--tag`` names a variant's own JSON (``scale-<tag>.json``) and section, e.g. the bound under kinematic moment
+matching: ``--tag kinematic --experiments aircraft propagation.integration=speed``.
 """
 
 from __future__ import annotations
@@ -99,7 +102,8 @@ def stage_row(experiment: str, stage: str, cfg: DictConfig, task: dict[str, Any]
 def markdown(tasks: list[dict[str, Any]], rows: list[dict[str, Any]], info: dict[str, Any]) -> str:
     """The section of docs/benchmarks.md."""
     lines = [
-        "## The paper at full scale: what each sweep costs here (issue 23)",
+        "## The paper at full scale: what each sweep costs here (issue 23)"
+        + (f" ({info['tag']}: {' '.join(info['overrides'])})" if info.get("tag") else ""),
         "",
         f"`{info['command']}` at commit {info['commit']} — {info['date']}, {info['machine']['cpu']} "
         f"({info['machine']['cores']} cores), {info['threads']} torch thread(s), torch {info['machine']['torch']}; "
@@ -144,7 +148,8 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0, help="of the data collection and the fit")
     parser.add_argument("--experiments-root", type=Path, default=None,
                         help="each experiment's sweep.root is DIR/<name> (default: the preset's)")
-    parser.add_argument("--output", type=Path, default=DEFAULT_OUTPUT)
+    parser.add_argument("--output", type=Path, help="the JSON (default: docs/bench/scale[-<tag>].json)")
+    parser.add_argument("--tag", default="", help="a variant's name: its own JSON and section (e.g. 'kinematic')")
     parser.add_argument("--no-docs", action="store_true")
     args, overrides = parse_with_overrides(parser)
     if any(o.split("=", 1)[0].lstrip("+~") == "sweep.root" for o in overrides):
@@ -162,15 +167,16 @@ def main() -> None:
                 measured[name] = measure_task(cfg, args.repeats, args.seed)
                 print(json.dumps(measured[name]), file=sys.stderr, flush=True)
             rows.append(stage_row(experiment, stage, cfg, measured[name]))
-    output = args.output.resolve()
-    info = {"date": today(), "command": command_line(), "commit": commit(),
+    suffix = f"-{args.tag}" if args.tag else ""
+    output = (args.output or DEFAULT_OUTPUT.with_stem(DEFAULT_OUTPUT.stem + suffix)).resolve()
+    info = {"date": today(), "command": command_line(), "commit": commit(), "tag": args.tag,
             "machine": machine(), "threads": args.threads, "repeats": args.repeats, "seed": args.seed,
             "overrides": overrides, "load_before": load_before, "load_after": os.getloadavg()[0],
             "output": display_path(output)}
     write_results(output, {**info, "tasks": list(measured.values())}, rows)
     section = markdown(list(measured.values()), rows, info)
     if not args.no_docs:
-        write_section(SECTION, section)
+        write_section(SECTION + suffix, section)
     print(section)
 
 

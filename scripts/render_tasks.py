@@ -52,6 +52,8 @@ TASK_FILES = [
      "source 0.5; targets 0.8, 1.0, 1.5, 2.0 kg"],
     ["`cartpole_dt005`", "the same at 0.05 s, 100 steps", "`task.env.pole_mass`",
      "the [particle recipe](particles.md)'s task"],
+    ["`cartpole_track`", "the same on a ±0.5 m track (`track_limit`)", "`task.env.pole_mass`",
+     "issue 64's [state constraints](byo-env.md#state-constraints) benchmark"],
     ["`mountaincar`", "`qtl/MountainCar-v0`", "`task.env.power`", "source 1.0; targets 0.5, 1.5, 3.0"],
     ["`quadcopter`", "`qtl/Quadcopter-v0`", "the vehicle (family `aircraft`)", "the aircraft transfer's source"],
     ["`helicopter`", "`qtl/Helicopter-v0`", "the vehicle (family `aircraft`)", "its target"],
@@ -64,8 +66,8 @@ PAGE_HEADER = """\
 The paper's transfer benchmarks as gymnasium environments (package `qtl.envs`, whose sources are `envs/`,
 registered under `qtl/`). Every parameter below is a constructor kwarg, so a transfer target is a kwarg away, e.g.
 `gymnasium.make("qtl/CartPoleSwingUp-v0", pole_mass=2.0)`. Each env truncates itself after
-`horizon` steps (no `TimeLimit` wrapper), never terminates early, returns the noise-free state as
-`info["state"]`, and exposes its reward declaratively as `env.unwrapped.reward_spec` (a
+`horizon` steps (no `TimeLimit` wrapper), never terminates early (unless the cart-pole is given a `track_limit`),
+returns the noise-free state as `info["state"]`, and exposes its reward declaratively as `env.unwrapped.reward_spec` (a
 `SaturatingReward`: $r = \\exp\\left(-\\tfrac12 (y - y^*)^\\top W (y - y^*) / \\text{width}^2\\right)$, $y$ the
 state with each angle replaced by its sine and cosine).
 

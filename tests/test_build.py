@@ -16,7 +16,7 @@ from omegaconf import OmegaConf
 from qtl.build import DTYPES, Parts, build, resolve_device, transfer_plan
 from qtl.checkpoint import latest_checkpoint, load_checkpoint
 from qtl.config import typed_groups
-from qtl.data import TransitionDataset
+from qtl.data import TransitionDataset, gp_training_pairs
 from qtl.episodes import random_actor, run_episode
 from qtl.errors import UserError
 from qtl.loop import run
@@ -80,6 +80,27 @@ def test_fit_dynamics_follows_the_model_option():
     assert isinstance(model, SparseDynamicsGP) and model.inducing_points.shape[0] == 6
     exact = build(tiny_config("model=exact")).fit_dynamics(data, torch.Generator().manual_seed(0))
     assert type(exact) is DynamicsGP and exact.train_x.shape == (16, parts.task.gp_input_dim)
+
+
+@pytest.mark.parametrize("option", ["exact", "sparse"])
+def test_fit_dynamics_under_speed_integration_fits_the_modelled_outputs_only(option):
+    extra = ("model.inducing=6",) if option == "sparse" else ()
+    parts = build(tiny_config("propagation.integration=speed", f"model={option}", *extra))
+    assert parts.modelled == (1, 3)  # cart-pole: x, ẋ, θ, θ̇; the positions follow their velocities
+    model = parts.fit_dynamics(_data(parts, episodes=2), torch.Generator().manual_seed(0))
+    assert model.outputs == (1, 3) and model.state_dim == 4 and model.hyperparameters.num_outputs == 2
+    _, _, delta = _data(parts, episodes=2).tensors()
+    torch.testing.assert_close(model.train_y, delta[:, [1, 3]], rtol=0, atol=0)
+
+
+def test_fit_dynamics_under_delta_integration_is_the_fit_of_every_output_bit_for_bit():
+    parts = build(tiny_config("model=exact"))
+    data = _data(parts, episodes=2)
+    model = parts.fit_dynamics(data, torch.Generator().manual_seed(0))
+    inputs, targets = gp_training_pairs(data, parts.features, parts.dtype)
+    plain = ExactFit(restarts=1, max_iter=5).fit(inputs, targets, generator=torch.Generator().manual_seed(0))
+    assert model.outputs == (0, 1, 2, 3)
+    assert torch.equal(model.hyperparameters.natural(), plain.hyperparameters.natural())
 
 
 @pytest.mark.parametrize(("override", "message"), [

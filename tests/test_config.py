@@ -52,8 +52,8 @@ GROUP_OPTIONS = [(group, option) for group in GROUP_SCHEMAS for option in option
 
 def test_groups_have_the_expected_options():
     assert options("task") == [
-        "cartpole", "cartpole_dt005", "helicopter", "inverted_pendulum", "mountaincar", "mountaincar_continuous",
-        "pendulum", "quadcopter",
+        "cartpole", "cartpole_dt005", "cartpole_track", "helicopter", "inverted_pendulum", "mountaincar",
+        "mountaincar_continuous", "pendulum", "quadcopter",
     ]
     assert "moment_matching" in options("propagation")
     assert {"rbf", "linear"} <= set(options("policy"))

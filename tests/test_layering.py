@@ -28,7 +28,7 @@ PACKAGES = {"qtl": "qtl", "qtl.envs": "envs"}
 LAYERS: list[tuple[str, set[str]]] = [
     ("envs", {"qtl.envs"}),
     ("foundation", {"qtl.errors", "qtl.gaussian", "qtl.seeding", "qtl.health"}),
-    ("data, task", {"qtl.data", "qtl.task", "qtl.env_wrappers"}),
+    ("data, task", {"qtl.data", "qtl.task", "qtl.env_wrappers", "qtl.constraints"}),
     ("maths", {"qtl.kernels", "qtl.lbfgs", "qtl.plateau"}),
     ("parts", {"qtl.features", "qtl.models", "qtl.policies", "qtl.rewards"}),
     ("policy search", {"qtl.policy_search"}),
@@ -44,13 +44,14 @@ RANK = {unit: rank for rank, (_, units) in enumerate(LAYERS) for unit in units}
 TOP = len(LAYERS) - 1
 # Layers whose units may import each other freely (acyclically); elsewhere only the listed pairs.
 OPEN_LAYERS = {"record", "algorithm", "top"}
-SAME_LAYER = {("qtl.policies", "qtl.features"), ("qtl.rewards", "qtl.features"), ("qtl.task", "qtl.env_wrappers")}
+SAME_LAYER = {("qtl.policies", "qtl.features"), ("qtl.rewards", "qtl.features"), ("qtl.task", "qtl.env_wrappers"),
+              ("qtl.task", "qtl.constraints")}
 
 # Imported alone in a fresh interpreter, each of these may load only what the table allows it.
 ALONE = [
     "qtl.gaussian", "qtl.errors", "qtl.kernels", "qtl.lbfgs", "qtl.features", "qtl.data", "qtl.task", "qtl.models",
     "qtl.env_wrappers", "qtl.policies", "qtl.rewards", "qtl.propagation", "qtl.policy_search", "qtl.transfer",
-    "qtl.envs",
+    "qtl.envs", "qtl.constraints",
 ]
 
 

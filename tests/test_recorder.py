@@ -70,6 +70,15 @@ def test_theta_columns_name_every_hyperparameter_and_parse_back():
     assert theta_row(None) == {}
 
 
+def test_theta_columns_name_the_state_dimensions_the_outputs_model():
+    # Speed integration on the cart-pole: the GP's two outputs are ẋ and θ̇, state dimensions 1 and 3.
+    columns = theta_columns(2, 3, outputs=(1, 3))
+    assert columns[0] == "theta/out1/lengthscale/in0" and columns[-1] == "theta/out3/noise_variance"
+    row = theta_row(THETA, outputs=(1, 3))
+    assert list(row) == columns
+    assert theta_from_row(row).natural().equal(THETA.natural())
+
+
 def test_recorder_writes_rows_and_scalars_and_a_resume_keeps_exactly_the_earlier_rows(tmp_path):
     recorder = RunRecorder(tmp_path, COLUMNS)
     try:

@@ -456,12 +456,16 @@ def test_kinematics_take_the_envs_control_period_times_the_action_repeat():
     given = Task.from_config({**CARTPOLE, "kinematics": {**kinematics, "period": 0.2}})
     assert given.kinematics.period == 0.2
     assert Task.from_config(CARTPOLE).kinematics is None
+    empty = {"positions": [], "velocities": [], "period": None, "weight": 0.5}  # the schema's default node
+    assert Task.from_config({**CARTPOLE, "kinematics": empty}).kinematics is None
+    checked_task({**CARTPOLE, "kinematics": empty})  # declares none: nothing to check
 
 
 @pytest.mark.parametrize(("kinematics", "message"), [
     ({"positions": [0], "velocities": []}, "as many velocities as positions"),
     ({"positions": [0, 2], "velocities": [1, 2]}, "distinct state indices below 4"),
     ({"positions": [0], "velocities": [1], "period": -0.1}, "period must be a control period > 0"),
+    ({"positions": [0], "velocities": [1], "weight": -0.5}, r"weight must be in \[0, 1\]"),
 ])
 def test_bad_kinematics_are_refused(kinematics, message):
     with pytest.raises(TaskError, match=message):

@@ -44,6 +44,19 @@ def test_auto_resume_continues_a_run_whose_config_was_written_the_old_way(tmp_pa
         auto_resume(tmp_path, tiny_config("seed=1"))
 
 
+def test_kinematics_count_only_where_speed_integration_uses_them():
+    """A run stored with task.kinematics null (before the empty default) or without a weight is the same run."""
+    stored = OmegaConf.to_container(tiny_config("task=mountaincar"))
+    stored["task"]["kinematics"] = None  # as runs made before the mountain car declared its kinematics hold it
+    assert comparable(OmegaConf.create(stored)) == comparable(tiny_config("task=mountaincar"))  # delta: inert
+    speed = tiny_config("propagation.integration=speed")
+    old = OmegaConf.to_container(speed)
+    del old["task"]["kinematics"]["weight"]  # a speed run made before task.kinematics.weight: the trapezoid rule
+    assert comparable(OmegaConf.create(old)) == comparable(speed)
+    assert comparable(speed) != comparable(tiny_config("propagation.integration=speed",
+                                                       "task.kinematics.weight=1.0"))
+
+
 def test_auto_resume_ignores_the_transfer_settings_of_a_run_without_a_source(tmp_path):
     """A PILCO run made when the compliance default was another is the same run; with a source it is not."""
     run(tiny_config("episodes=0"), tmp_path / "pilco")

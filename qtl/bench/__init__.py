@@ -5,8 +5,9 @@
 (:func:`qtl.report.tables.markdown_table`, as the report's); :mod:`~qtl.bench.runs` parses options with Hydra
 overrides after them and makes learning runs in parallel. The cases several benchmarks share have modules of their
 own: :mod:`~qtl.bench.search` (cart-pole data, the loop's search settings), :mod:`~qtl.bench.scale` (the full-scale
-presets' stages), :mod:`~qtl.bench.synthetic` (the rollout benchmarks' synthetic GP) and :mod:`~qtl.bench.refit` (a
-finished run's model, refitted as its next episode would fit it). Benchmarks write into the clone the package is
+presets' stages), :mod:`~qtl.bench.synthetic` (the rollout benchmarks' synthetic GP), :mod:`~qtl.bench.refit` (a
+finished run's model, refitted as its next episode would fit it) and :mod:`~qtl.bench.constraints` (a run's crossings
+of declared state bounds and its cost per search evaluation). Benchmarks write into the clone the package is
 installed from (editable, :data:`~qtl.bench.record.ROOT`).
 """
 

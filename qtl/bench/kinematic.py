@@ -1,8 +1,8 @@
 """Full-state against kinematic moment matching (issue 63): ``propagation.integration`` delta vs speed, same data.
 
 Both rows of a comparison share the data, the fitted model and ψ_0; only the step differs: ``delta`` (the GP on
-every output, x + Δ) or ``speed`` (the GP on the non-position outputs, positions by the trapezoid rule). A task
-whose YAML declares no ``task.kinematics`` gets them here where its layout is known (:data:`KNOWN_KINEMATICS`).
+every output, x + Δ) or ``speed`` (the GP on the non-position outputs, positions integrated from their velocities
+with the task's ``kinematics.weight`` w: q + T q̇ + w T Δq̇).
 The aircraft row is one batched search round of the full-scale preset's stage (``experiment=aircraft_source``,
 the sparse GP with ``model.inducing`` inputs once the data pass ``model.sparse_above``), as ``bench_scale.py``
 measures it, under both steps in one process.
@@ -20,18 +20,8 @@ from qtl.bench.cells import markdown_table
 from qtl.bench.scale import compose_stage, model_facts, stage_model
 from qtl.bench.search import batched_rollout_grad
 from qtl.build import build
-from qtl.config.schema import KinematicsConfig
 
 INTEGRATIONS = ("delta", "speed")
-# Layouts of tasks whose YAML declares no kinematics: positions and their velocities, by task name.
-KNOWN_KINEMATICS = {
-    # x ← ẋ, one step a unit of time (the env has no dt). Its map is semi-implicit Euler, x + ẋ_{t+1}: the
-    # trapezoid rule's x + ẋ_t + Δẋ/2 is off by Δẋ/2 per step, a model error of its own.
-    "mountaincar": KinematicsConfig(positions=[0], velocities=[1], period=1.0),
-    # x, y, z, φ, θ, ψ ← ẋ, ẏ, ż, φ̇, θ̇, ψ̇ (the Euler angles' rates, not the body rates)
-    "quadcopter": KinematicsConfig(positions=[0, 1, 2, 3, 4, 5], velocities=[6, 7, 8, 9, 10, 11]),
-    "helicopter": KinematicsConfig(positions=[0, 1, 2, 3, 4, 5], velocities=[6, 7, 8, 9, 10, 11]),
-}
 AIRCRAFT_PRESET = "aircraft_source"
 DESCRIPTION = (
     "Full-state against kinematic moment matching (`propagation.integration=delta|speed`, issue 63): the same data, "
@@ -45,11 +35,9 @@ DESCRIPTION = (
 
 
 def with_integration(cfg: DictConfig, integration: str) -> DictConfig:
-    """A copy of ``cfg`` with ``propagation.integration`` set, and the task's kinematics where known but undeclared."""
+    """A copy of ``cfg`` with ``propagation.integration`` set (``speed`` uses the kinematics its task declares)."""
     cfg = copy.deepcopy(cfg)
     cfg.propagation.integration = integration
-    if integration == "speed" and cfg.task.get("kinematics") is None and cfg.task.name in KNOWN_KINEMATICS:
-        cfg.task.kinematics = KNOWN_KINEMATICS[cfg.task.name]
     return cfg
 
 

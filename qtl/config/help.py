@@ -36,6 +36,10 @@ def _keys(schema: type, prefix: str = "") -> Iterator[tuple[str, str, str]]:
             continue  # `_target_` and friends; the groups are listed per option
         key = f"{prefix}{f.name}"
         nested = _dataclass_of(hints[f.name])
+        if nested is not None and typing.get_origin(hints[f.name]) is list:  # a list of entries: key[i].field
+            yield key, "[]", f.metadata.get("help", "")
+            yield from _keys(nested, f"{key}[i].")
+            continue
         if nested is not None:
             yield from _keys(nested, f"{key}.")
             continue

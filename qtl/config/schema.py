@@ -79,11 +79,31 @@ class SearchRewardConfig:
 class KinematicsConfig:
     """Which state dimensions are positions and which their velocities (speed integration, propagation.integration)."""
 
-    positions: list[int] = field(default=MISSING, metadata=doc("state indices of the positions q"))
-    velocities: list[int] = field(default=MISSING, metadata=doc("state indices of their velocities q̇, in order"))
+    positions: list[int] = field(default_factory=list, metadata=doc("state indices of the positions q ([]: none)"))
+    velocities: list[int] = field(default_factory=list, metadata=doc("state indices of their velocities q̇, in order"))
     period: Optional[float] = field(  # noqa: UP045
         default=None, metadata=doc("control period T in s (null: the env's dt × action_repeat)"),
     )
+    weight: float = field(
+        default=0.5,
+        metadata=doc("w in q_{t+1} = q + T q̇ + w T Δq̇: ½ the trapezoid rule (MC-PILCO), 1 semi-implicit Euler, "
+                     "(n+1)/(2n) n semi-implicit Euler steps per decision"),
+    )
+
+
+@dataclass
+class ConstraintConfig:
+    """A bound on one state dimension (after Safe-PILCO): leaving it ends the episode (terminate) or costs (penalty)."""
+
+    dim: int = field(default=MISSING, metadata=doc("the bounded state dimension (observation coordinates)"))
+    low: Optional[float] = field(default=None, metadata=doc("lower bound (null: unbounded below)"))  # noqa: UP045
+    high: Optional[float] = field(default=None, metadata=doc("upper bound (null: unbounded above)"))  # noqa: UP045
+    kind: str = field(
+        default="terminate",
+        metadata=doc("terminate (the predicted return weights each step by the survival Π p_t) | penalty (each "
+                     "step costs weight × (1 − p_t))"),
+    )
+    weight: float = field(default=0.0, metadata=doc("penalty only: the cost per step of (1 − p_t), > 0"))
 
 
 @dataclass
@@ -131,8 +151,13 @@ class TaskConfig:
     search_reward: Optional[SearchRewardConfig] = field(  # noqa: UP045
         default=None, metadata=doc("an angle/position cost a particle search may score (propagation.search_cost)"),
     )
-    kinematics: Optional[KinematicsConfig] = field(  # noqa: UP045
-        default=None, metadata=doc("positions and velocities, for propagation.integration=speed (null: none)"),
+    kinematics: KinematicsConfig = field(
+        default_factory=KinematicsConfig,
+        metadata=doc("positions and velocities, for propagation.integration=speed (positions: []: none)"),
+    )
+    constraints: list[ConstraintConfig] = field(
+        default_factory=list,
+        metadata=doc("state bounds that end an episode or cost, in the predicted return (qtl.constraints; []: none)"),
     )
     policy_size: int = field(default=50, metadata=doc("RBF basis functions of the policy"))
     success: SuccessConfig = field(default_factory=SuccessConfig, metadata=doc("when an episode counts as a success"))

@@ -19,14 +19,17 @@ from omegaconf import DictConfig
 from torch import nn
 
 from qtl.config.groups import GROUP_SCHEMAS, SCHEMA_BY_TARGET
+from qtl.constraints import CONSTRAINT_KINDS
 from qtl.envs.rewards import SaturatingReward
 from qtl.errors import TaskError, TransferError, UserError
 from qtl.task import (
     DEFAULT_START_MIN_STD,
     SEARCH_COST_ANGLES,
+    TRAPEZOID_WEIGHT,
     Task,
     action_repeat_of,
     check_kinematics,
+    declares_kinematics,
     env_kwargs,
 )
 from qtl.transfer.compliance import BANDWIDTHS, COMPLIANCES, DEFAULT_COMPLIANCE
@@ -181,6 +184,7 @@ def checked_task(cfg: Mapping[str, Any]) -> Task:
         _check_reward(cfg.get("reward"), env.unwrapped, env_id, state_dim)
         _check_state_names(cfg.get("state_names"), env.unwrapped, state_dim)
         _check_kinematics(cfg.get("kinematics"), env.unwrapped, state_dim, action_repeat)
+        _check_constraints(cfg.get("constraints"), state_dim)
         _check_rest(cfg, horizon, state_dim)
         return Task.from_config(cfg, env)
     finally:
@@ -292,8 +296,8 @@ def _check_state_names(names: Sequence[str] | None, env: gymnasium.Env, state_di
 
 
 def _check_kinematics(cfg: Mapping[str, Any] | None, env: gymnasium.Env, state_dim: int, action_repeat: int) -> None:
-    """``task.kinematics``: paired indices and a period, given or the env's ``dt`` × ``action_repeat``."""
-    if cfg is None:
+    """``task.kinematics``: paired indices, a weight w and a period, given or the env's ``dt`` × ``action_repeat``."""
+    if not declares_kinematics(cfg):
         return
     positions = tuple(int(p) for p in cfg.get("positions") or ())
     velocities = tuple(int(v) for v in cfg.get("velocities") or ())
@@ -304,7 +308,53 @@ def _check_kinematics(cfg: Mapping[str, Any] | None, env: gymnasium.Env, state_d
             raise TaskError("task.kinematics.period is not set and the env has no dt: set task.kinematics.period "
                             "to the control period in seconds")
         period = float(dt) * action_repeat
-    check_kinematics(state_dim, positions, velocities, float(period))
+    weight = TRAPEZOID_WEIGHT if cfg.get("weight") is None else float(cfg["weight"])
+    check_kinematics(state_dim, positions, velocities, float(period), weight)
+
+
+CONSTRAINT_KEYS = ("dim", "low", "high", "kind", "weight")
+
+
+def _check_constraints(cfg: Sequence[Any] | None, state_dim: int) -> None:
+    """``task.constraints``: each entry a known dim, a bound or two (low < high), a known kind and its weight."""
+    if cfg is None:
+        return
+    if isinstance(cfg, (str, Mapping)) or not isinstance(cfg, Sequence):
+        raise TaskError(f"task.constraints must be a list of bounds ({{dim, low, high, kind, weight}}), got {cfg!r}")
+    seen: set[tuple[int, str]] = set()
+    for i, entry in enumerate(cfg):
+        key = f"task.constraints[{i}]"
+        if not isinstance(entry, Mapping):
+            raise TaskError(f"{key} must be a mapping {{dim, low, high, kind, weight}}, got {entry!r}")
+        unknown = sorted(set(entry) - set(CONSTRAINT_KEYS))
+        if unknown:
+            raise TaskError(f"{key}.{unknown[0]} is no key of a constraint: its keys are {', '.join(CONSTRAINT_KEYS)}")
+        dim = entry.get("dim")
+        if isinstance(dim, bool) or not isinstance(dim, numbers.Integral) or not 0 <= dim < state_dim:
+            raise TaskError(f"{key}.dim must be a state dimension in 0..{state_dim - 1}, got {dim!r}")
+        low, high = entry.get("low"), entry.get("high")
+        for side, value in (("low", low), ("high", high)):
+            if value is not None and (isinstance(value, bool) or not isinstance(value, numbers.Real)
+                                      or math.isnan(value)):
+                raise TaskError(f"{key}.{side} must be a number or null (unbounded), got {value!r}")
+        if low is None and high is None:
+            raise TaskError(f"{key} bounds nothing: give {key}.low, {key}.high or both")
+        if low is not None and high is not None and not low < high:
+            raise TaskError(f"{key}.low={low} must be below {key}.high={high}")
+        kind = entry.get("kind", "terminate")
+        if kind not in CONSTRAINT_KINDS:
+            raise TaskError(f"{key}.kind must be one of {', '.join(CONSTRAINT_KINDS)}, got {kind!r}")
+        weight = entry.get("weight") or 0.0
+        if isinstance(weight, bool) or not isinstance(weight, numbers.Real) or not math.isfinite(weight):
+            raise TaskError(f"{key}.weight must be a finite number, got {weight!r}")
+        if kind == "penalty" and not weight > 0:
+            raise TaskError(f"{key}.weight must be > 0 for kind=penalty (the cost per step of 1 − p_t), got {weight}")
+        if kind == "terminate" and weight != 0:
+            raise TaskError(f"{key}.weight must be 0 for kind=terminate (termination costs the lost reward), "
+                            f"got {weight}")
+        if (int(dim), kind) in seen:
+            raise TaskError(f"{key} bounds dimension {dim} ({kind}) a second time: give one entry with both bounds")
+        seen.add((int(dim), kind))
 
 
 def _check_search_reward(cfg: Mapping[str, Any] | None, state_dim: int) -> None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import gpytorch
@@ -34,8 +35,9 @@ MAX_LENGTHSCALE_RATIO = 100.0
 PRIOR_TAIL_WIDTH = 0.05
 # Spreads below this are treated as this (a constant input or output carries no scale).
 MIN_DATA_STD = 1e-6
-# Heuristic initial noise (PILCO): σ_ε² = var(Δ) / HEURISTIC_SNR².
+# Heuristic initial noise (PILCO): σ_ε² = var(Δ) / HEURISTIC_SNR², and at least the floor × HEURISTIC_FLOOR.
 HEURISTIC_SNR = 10.0
+HEURISTIC_FLOOR = 1 + NOISE_FLOOR_MARGIN
 # Fewest training points a model accepts.
 MIN_TRAIN_POINTS = 3
 # Test inputs per GPyTorch prediction call in `predict`.
@@ -50,6 +52,9 @@ class GPPosteriorCache:
     ``beta``: `E x n`, (K + σ_ε²I)⁻¹ y per output; ``hyperparameters``: θ. A sparse GP's cache has the same
     form at its m inducing inputs Z (``K_inv`` = K_mm⁻¹ − Σ⁻¹) and adds, for pathwise samples, ``prior_inv`` K_mm⁻¹
     and ``update_root`` R `E x m x m` with R Rᵀ = Σ⁻¹ (the covariance of q(u) mapped by K_mm⁻¹); None when exact.
+    ``outputs``: the state dimensions the E outputs are, in order, of a ``state_dim``-D state (None: all of them,
+    0..E−1, of an E-D state). ``constant_outputs``: state dimensions whose Δ is deterministic, ``constant_delta``
+    `C` (:mod:`qtl.models.constant`).
     """
 
     inputs: Tensor
@@ -58,6 +63,28 @@ class GPPosteriorCache:
     hyperparameters: GPHyperparameters
     prior_inv: Tensor | None = None
     update_root: Tensor | None = None
+    outputs: tuple[int, ...] | None = None
+    state_dim: int | None = None
+    constant_outputs: tuple[int, ...] = ()
+    constant_delta: Tensor | None = None
+
+
+def checked_outputs(
+    outputs: Sequence[int] | None, num_outputs: int, state_dim: int | None = None, constant: Sequence[int] = ()
+) -> tuple[tuple[int, ...], int]:
+    """The state dimensions of ``num_outputs`` GP outputs and the state's dimension, checked.
+
+    ``outputs`` default to 0..E−1; ``state_dim`` to E without ``outputs``, else to the largest output (or
+    ``constant`` output) + 1. Outputs and constant outputs must be distinct dimensions below ``state_dim``, one per
+    GP output (a ValueError otherwise).
+    """
+    found = tuple(range(num_outputs)) if outputs is None else tuple(int(d) for d in outputs)
+    every = found + tuple(int(d) for d in constant)
+    size = (num_outputs if outputs is None else max(every, default=-1) + 1) if state_dim is None else int(state_dim)
+    if len(found) != num_outputs or len(set(every)) != len(every) or any(not 0 <= d < size for d in every):
+        raise ValueError(f"outputs {list(found)} and constant outputs {list(constant)} must be distinct state "
+                         f"dimensions in [0, {size}), one per GP output")
+    return found, size
 
 
 def _check_data(train_x: Tensor, train_y: Tensor) -> None:
@@ -95,6 +122,11 @@ class DynamicsGP(GPEvidence, GPCheckpoint, gpytorch.models.ExactGP):
     Smoothed-box priors, centred on the spread of the data given at construction, keep
     evidence maximisation well conditioned: ℓ_d within a factor ``MAX_LENGTHSCALE_RATIO`` of
     std(x_d), α/σ_ε within ``MAX_SNR``, and σ_ε² above ``NOISE_TO_TARGET_MIN`` · var(Δ_e).
+
+    ``outputs``: the state dimensions the E outputs model, in order (default: all, 0..E−1), of a ``state_dim``-D
+    state (default: E without ``outputs``, else the largest output + 1); e.g. the velocities alone under speed
+    integration (:mod:`qtl.propagation.integration`). ``constant_outputs``: state dimensions whose Δ the data
+    showed constant, modelled as deterministic (Δ = ``constant_delta`` `C`, no variance; :mod:`qtl.models.constant`).
     """
 
     def __init__(
@@ -103,9 +135,18 @@ class DynamicsGP(GPEvidence, GPCheckpoint, gpytorch.models.ExactGP):
         train_y: Tensor,
         hyperparameters: GPHyperparameters | None = None,
         *,
+        outputs: Sequence[int] | None = None,
+        state_dim: int | None = None,
+        constant_outputs: Sequence[int] = (),
+        constant_delta: Tensor | None = None,
         dtype: torch.dtype = torch.float64,
     ) -> None:
         _check_data(train_x, train_y)
+        outputs, state_dim = checked_outputs(outputs, train_y.shape[1], state_dim, constant_outputs)
+        constant_delta = torch.zeros(0) if constant_delta is None else torch.as_tensor(constant_delta).reshape(-1)
+        if constant_delta.shape != (len(constant_outputs),) or not torch.isfinite(constant_delta).all():
+            raise ValueError(f"constant_delta must be {len(constant_outputs)} finite values, one per constant output, "
+                             f"got {constant_delta.tolist()}")
         train_x = train_x.to(dtype)
         train_y = train_y.to(dtype)
         num_outputs, input_dim = train_y.shape[1], train_x.shape[1]
@@ -122,6 +163,10 @@ class DynamicsGP(GPEvidence, GPCheckpoint, gpytorch.models.ExactGP):
             gpytorch.kernels.RBFKernel(ard_num_dims=input_dim, batch_shape=batch),
             batch_shape=batch,
         )
+        self.outputs: tuple[int, ...] = outputs  # the state dimensions of the E outputs, in order
+        self.state_dim = state_dim  # D of the state x whose Δ the outputs are
+        self.constant_outputs = tuple(int(d) for d in constant_outputs)  # state dimensions of a deterministic Δ
+        self.register_buffer("constant_delta", constant_delta.to(dtype=dtype, device=train_x.device))  # C
         self._register_data_priors(train_x, train_y)
         self.to(dtype=dtype, device=train_x.device)
         self.hyperparameters = (
@@ -215,11 +260,12 @@ class DynamicsGP(GPEvidence, GPCheckpoint, gpytorch.models.ExactGP):
         self.prediction_strategy = None  # θ changed: drop GPyTorch's cached solves
 
     def heuristic_hyperparameters(self) -> GPHyperparameters:
-        """PILCO's initial θ: ℓ = std(x), α² = var(Δ), σ_ε² = α² / 100."""
+        """PILCO's initial θ: ℓ = std(x), α² = var(Δ), σ_ε² = α² / 100 (at least the noise floor)."""
         return GPHyperparameters(
             lengthscales=self.input_std.expand(self.num_outputs, -1).clone(),
             signal_variance=self.target_var.clone(),
-            noise_variance=self.target_var / HEURISTIC_SNR**2,
+            # Above the floor: a Δ of spread below HEURISTIC_SNR · √NOISE_VARIANCE_MIN would give less.
+            noise_variance=(self.target_var / HEURISTIC_SNR**2).clamp_min(NOISE_VARIANCE_MIN * HEURISTIC_FLOOR),
         )
 
     # -- prediction --------------------------------------------------------------------------
@@ -259,4 +305,6 @@ class DynamicsGP(GPEvidence, GPCheckpoint, gpytorch.models.ExactGP):
             chol = psd_safe_cholesky(K)
             beta = torch.cholesky_solve(self.train_targets.unsqueeze(-1), chol).squeeze(-1)
             K_inv = torch.cholesky_inverse(chol)
-        return GPPosteriorCache(inputs=self.train_x, K_inv=K_inv, beta=beta, hyperparameters=theta)
+        return GPPosteriorCache(inputs=self.train_x, K_inv=K_inv, beta=beta, hyperparameters=theta,
+                                outputs=self.outputs, state_dim=self.state_dim,
+                                constant_outputs=self.constant_outputs, constant_delta=self.constant_delta)

@@ -3,12 +3,15 @@
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Protocol
 
 import torch
 from torch import Tensor
 
+from qtl import health
+from qtl.models.constant import CONSTANT_DELTA_ATOL, CONSTANT_DELTA_RTOL, OutputSplit, split_outputs
 from qtl.models.dynamics_gp import DynamicsGP
 from qtl.models.gp_evidence import DEFAULT_MAX_ITER, DEFAULT_RESTARTS
 from qtl.models.hyperparameters import GPHyperparameters
@@ -32,12 +35,15 @@ class ModelFit(Protocol):
         start: GPHyperparameters | None = None,
         generator: torch.Generator | None = None,
         previous: PreviousFit | None = None,
+        outputs: Sequence[int] | None = None,
+        state_dim: int | None = None,
     ) -> DynamicsGP:
         """θ_p by evidence maximisation on inputs `n x (F+U)` and targets Δ `n x E`, from ``start`` or the heuristic.
 
         With ``warm_start`` on, from the ``previous`` episode's fit where there is one; ``start`` (θ_s of the
         free rule, else None) then is the cold start of the restarts only. So a free-rule run's first fit
-        starts from θ_s and each later one from θ_p_{i−1}, itself re-learned from θ_s.
+        starts from θ_s and each later one from θ_p_{i−1}, itself re-learned from θ_s. ``outputs``: the state
+        dimensions the E targets are (default: all, 0..E−1), of a ``state_dim``-D state, recorded on the model.
         """
         ...
 
@@ -77,14 +83,19 @@ class ExactFit:
         start: GPHyperparameters | None = None,
         generator: torch.Generator | None = None,
         previous: PreviousFit | None = None,
+        outputs: Sequence[int] | None = None,
+        state_dim: int | None = None,
     ) -> DynamicsGP:
         """The exact GP on inputs `n x (F+U)`, targets `n x E`, fitted from ``start`` (None: PILCO's heuristic).
 
         ``warm_start`` and a ``previous`` fit of at least half these tuples: from its θ_p, ``start``
         being the cold start of the outputs the warm fit leaves short (:meth:`DynamicsGP.fit_warm`).
         """
-        model = DynamicsGP(inputs, targets, hyperparameters=start, dtype=inputs.dtype)
-        warm = _warm_from(previous, inputs) if self.warm_start else None
+        targets, split, start = _split(targets, outputs, start, previous)
+        model = DynamicsGP(inputs, targets, hyperparameters=start, outputs=split.outputs, state_dim=state_dim,
+                           constant_outputs=split.constant_outputs, constant_delta=split.constant_delta,
+                           dtype=inputs.dtype)
+        warm = _warm_from(previous, model) if self.warm_start else None
         if warm is not None:
             model.fit_warm(warm.theta, warm.objective, restarts=self.restarts, max_iter=self.max_iter,
                            generator=generator)
@@ -93,9 +104,35 @@ class ExactFit:
         return model
 
 
-def _warm_from(previous: PreviousFit | None, inputs: Tensor) -> PreviousFit | None:
-    """The previous fit on the device and dtype of ``inputs`` when it saw enough of them to start from, else None."""
+def _split(
+    targets: Tensor, outputs: Sequence[int] | None, start: GPHyperparameters | None, previous: PreviousFit | None
+) -> tuple[Tensor, OutputSplit, GPHyperparameters | None]:
+    """The targets `n x E''` and ``start`` θ of the outputs a GP learns, and the split (:mod:`qtl.models.constant`).
+
+    Constant outputs are counted in ``health.csv`` at every fit, and logged when they differ from ``previous``'s.
+    """
+    split = split_outputs(targets, outputs)
+    before = () if previous is None else previous.constant_outputs
+    if split.constant_outputs != before:
+        log.info("outputs %s: Δ constant in the data (std <= %g + %g |mean|), modelled as deterministic (Δ = %s, "
+                 "no variance); the GP learns outputs %s", list(split.constant_outputs), CONSTANT_DELTA_ATOL,
+                 CONSTANT_DELTA_RTOL, [round(float(v), 12) for v in split.constant_delta], list(split.outputs))
+    if not split.constant_outputs:
+        return targets, split, start
+    health.count(health.CONSTANT_OUTPUTS, len(split.constant_outputs))
+    if start is not None and start.num_outputs == targets.shape[-1]:  # θ of every modelled output: the GP's rows
+        start = start.select(torch.tensor(split.varying))
+    return targets[:, split.varying], split, start
+
+
+def _warm_from(previous: PreviousFit | None, model: DynamicsGP) -> PreviousFit | None:
+    """The previous fit on ``model``'s device and dtype when it saw enough of its data and its outputs, else None."""
+    inputs = model.train_x
     if previous is None or not previous.speaks_for(len(inputs)):
+        return None
+    if previous.modelled != model.outputs:
+        log.info("the previous fit modelled outputs %s, this one %s: a cold fit", list(previous.modelled),
+                 list(model.outputs))
         return None
     return previous.to(inputs.dtype, inputs.device)
 
@@ -125,15 +162,20 @@ class SparseFit:
         start: GPHyperparameters | None = None,
         generator: torch.Generator | None = None,
         previous: PreviousFit | None = None,
+        outputs: Sequence[int] | None = None,
+        state_dim: int | None = None,
     ) -> DynamicsGP:
         """The sparse GP on inputs `n x (F+U)`, targets `n x E`; ``generator`` draws Z, then the restarts.
 
         ``warm_start`` and a ``previous`` fit of at least half these tuples: from its θ_p, and its Z
         where the data only grew and the number of inducing inputs is the same (:meth:`SparseDynamicsGP.fit_warm`).
         """
+        targets, split, start = _split(targets, outputs, start, previous)
         model = SparseDynamicsGP(inputs, targets, hyperparameters=start, num_inducing=self.inducing,
-                                 generator=generator, jitter=self.inducing_jitter, dtype=inputs.dtype)
-        warm = _warm_from(previous, inputs) if self.warm_start else None
+                                 generator=generator, jitter=self.inducing_jitter, outputs=split.outputs,
+                                 state_dim=state_dim, constant_outputs=split.constant_outputs,
+                                 constant_delta=split.constant_delta, dtype=inputs.dtype)
+        warm = _warm_from(previous, model) if self.warm_start else None
         if warm is not None:
             inducing = warm.inducing if warm.num_points <= len(inputs) else None  # data only grew
             model.fit_warm(warm.theta, warm.objective, inducing=inducing, restarts=self.restarts,
@@ -168,6 +210,8 @@ class AutoFit:
         start: GPHyperparameters | None = None,
         generator: torch.Generator | None = None,
         previous: PreviousFit | None = None,
+        outputs: Sequence[int] | None = None,
+        state_dim: int | None = None,
     ) -> DynamicsGP:
         """:class:`ExactFit` or, above ``sparse_above`` tuples, :class:`SparseFit` on inputs `n x (F+U)`."""
         if self.sparse_above is not None and len(inputs) > self.sparse_above:
@@ -177,7 +221,8 @@ class AutoFit:
                                          self.inducing_jitter)
         else:
             chosen = ExactFit(self.restarts, self.max_iter, self.warm_start)
-        return chosen.fit(inputs, targets, start=start, generator=generator, previous=previous)
+        return chosen.fit(inputs, targets, start=start, generator=generator, previous=previous, outputs=outputs,
+                           state_dim=state_dim)
 
 
 def log_evidence(model: DynamicsGP) -> float:

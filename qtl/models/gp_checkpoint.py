@@ -27,13 +27,20 @@ class GPCheckpoint:
             "lengthscales": theta.lengthscales.cpu(),
             "signal_variance": theta.signal_variance.cpu(),
             "noise_variance": theta.noise_variance.cpu(),
+            "outputs": list(self.outputs),
+            "state_dim": self.state_dim,
+            "constant_outputs": list(self.constant_outputs),
+            "constant_delta": self.constant_delta.detach().cpu(),
         }
 
     @classmethod
     def from_state(
         cls, state: dict, *, dtype: torch.dtype = torch.float64, device: torch.device | str = "cpu"
     ) -> Self:
-        """Rebuild a model from :meth:`state` on ``device``; a malformed state raises ValueError."""
+        """Rebuild a model from :meth:`state` on ``device``; a malformed state raises ValueError.
+
+        A state without ``outputs`` (written before models held them) models all outputs, 0..E−1, of an E-D state.
+        """
         if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT:
             raise ValueError("not a DynamicsGP state (missing or wrong 'format' entry)")
         if state.get("version") != CHECKPOINT_VERSION:
@@ -47,7 +54,9 @@ class GPCheckpoint:
             state["signal_variance"].to(dtype),
             state["noise_variance"].to(dtype),
         )
-        return cls(state["train_x"].to(device), state["train_y"].to(device), theta, dtype=dtype)
+        return cls(state["train_x"].to(device), state["train_y"].to(device), theta, outputs=state.get("outputs"),
+                   state_dim=state.get("state_dim"), constant_outputs=state.get("constant_outputs", ()),
+                   constant_delta=state.get("constant_delta"), dtype=dtype)
 
     def save(self, path: str | os.PathLike) -> None:
         """Write data and θ to ``path`` (an ExactGP's state_dict alone lacks the data)."""

@@ -2,11 +2,17 @@
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
+
+
+def dict_outputs(values: Mapping[str, object]) -> tuple[int, ...]:
+    """The state dimensions d a flat θ's ``out{d}/signal_variance`` keys name, in increasing order."""
+    found = (key.split("/", 1)[0] for key in values if key.endswith("/signal_variance"))
+    return tuple(sorted(int(name[3:]) for name in found if name.startswith("out") and name[3:].isdigit()))
 
 
 def _column_names(input_dim: int) -> list[str]:
@@ -90,28 +96,39 @@ class GPHyperparameters:
         return _column_names(self.input_dim)
 
     @staticmethod
-    def keys(num_outputs: int, input_dim: int) -> list[str]:
-        """The keys of :meth:`as_dict`, ``out{j}/<name>``, output-major in the column order of :meth:`natural`."""
-        return [f"out{j}/{name}" for j in range(num_outputs) for name in _column_names(input_dim)]
+    def keys(num_outputs: int, input_dim: int, outputs: Sequence[int] | None = None) -> list[str]:
+        """The keys of :meth:`as_dict`, ``out{d}/<name>``, output-major in the column order of :meth:`natural`.
 
-    def as_dict(self) -> dict[str, float]:
-        """Flat ``{"out{j}/<name>": value}`` mapping, for logs and CSV files."""
+        ``outputs``: the state dimension d each output models (default 0..E−1), which names it.
+        """
+        dims = range(num_outputs) if outputs is None else outputs
+        if len(dims) != num_outputs:
+            raise ValueError(f"outputs {list(dims)} name {len(dims)} outputs, θ has {num_outputs}")
+        return [f"out{d}/{name}" for d in dims for name in _column_names(input_dim)]
+
+    def as_dict(self, outputs: Sequence[int] | None = None) -> dict[str, float]:
+        """Flat ``{"out{d}/<name>": value}`` mapping, for logs and CSV files (``outputs``: as :meth:`keys`)."""
         values = self.natural().detach().cpu().reshape(-1)
-        return {key: float(v) for key, v in zip(self.keys(self.num_outputs, self.input_dim), values, strict=True)}
+        keys = self.keys(self.num_outputs, self.input_dim, outputs)
+        return {key: float(v) for key, v in zip(keys, values, strict=True)}
 
     @classmethod
     def from_dict(cls, values: Mapping[str, float | str], prefix: str = "") -> GPHyperparameters:
         """θ in float64 from the keys of :meth:`as_dict` behind ``prefix`` (its inverse); other keys are ignored.
 
-        E.g. ``from_dict(metrics_row, "theta/")`` reads a ``metrics.csv`` row's θ_i columns.
+        E.g. ``from_dict(metrics_row, "theta/")`` reads a ``metrics.csv`` row's θ_i columns. The outputs are
+        taken in the order of the state dimensions their keys name (:func:`dict_outputs`).
         """
         flat = {key.removeprefix(prefix): value for key, value in values.items() if key.startswith(prefix)}
-        num_outputs = sum(key.endswith("/signal_variance") for key in flat)
-        if num_outputs == 0 or len(flat) % num_outputs:
+        outputs = dict_outputs(flat)
+        if not outputs or len(flat) % len(outputs):
             raise ValueError(f"not a flat θ behind {prefix!r}: {sorted(flat)}")
-        keys = cls.keys(num_outputs, len(flat) // num_outputs - 2)
-        natural = torch.tensor([float(flat[key]) for key in keys], dtype=torch.float64)
-        return cls.from_natural(natural.reshape(num_outputs, -1))
+        keys = cls.keys(len(outputs), len(flat) // len(outputs) - 2, outputs)
+        try:
+            natural = torch.tensor([float(flat[key]) for key in keys], dtype=torch.float64)
+        except KeyError as err:
+            raise ValueError(f"not a flat θ behind {prefix!r}: {err} is missing") from None
+        return cls.from_natural(natural.reshape(len(outputs), -1))
 
     def state_dict(self) -> dict[str, Tensor]:
         """The three tensors by field name, on the CPU (``GPHyperparameters(**state)`` rebuilds θ), for checkpoints."""

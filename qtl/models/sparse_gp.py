@@ -28,7 +28,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 
 import gpytorch
 import torch
@@ -119,9 +119,14 @@ class SparseDynamicsGP(DynamicsGP):
         inducing_points: Tensor | None = None,
         generator: torch.Generator | None = None,
         jitter: float = DEFAULT_JITTER,
+        outputs: Sequence[int] | None = None,
+        state_dim: int | None = None,
+        constant_outputs: Sequence[int] = (),
+        constant_delta: Tensor | None = None,
         dtype: torch.dtype = torch.float64,
     ) -> None:
-        super().__init__(train_x, train_y, hyperparameters, dtype=dtype)
+        super().__init__(train_x, train_y, hyperparameters, outputs=outputs, state_dim=state_dim,
+                         constant_outputs=constant_outputs, constant_delta=constant_delta, dtype=dtype)
         if inducing_points is None:
             if num_inducing < 1:
                 raise ValueError(f"num_inducing must be >= 1, got {num_inducing}")
@@ -311,7 +316,9 @@ class SparseDynamicsGP(DynamicsGP):
             update_root = torch.linalg.solve_triangular(chol_m.mT, root, upper=True)
         return GPPosteriorCache(inputs=self.inducing_points, K_inv=k_inv, beta=beta.squeeze(-1),
                                 hyperparameters=self.hyperparameters, prior_inv=0.5 * (prior_inv + prior_inv.mT),
-                                update_root=update_root)
+                                update_root=update_root, outputs=self.outputs,
+                                state_dim=self.state_dim, constant_outputs=self.constant_outputs,
+                                constant_delta=self.constant_delta)
 
     def predict(self, x: Tensor, *, include_noise: bool = False) -> tuple[Tensor, Tensor]:
         """Predictive mean and variance of Δ at deterministic inputs `k x D` (Eq. 1-2, sparse form): `k x E` each."""
@@ -334,4 +341,6 @@ class SparseDynamicsGP(DynamicsGP):
 
     def exact(self) -> DynamicsGP:
         """The exact GP on the same data with the same θ (e.g. for leave-one-out predictions)."""
-        return DynamicsGP(self.train_x, self.train_y, self.hyperparameters, dtype=self.train_x.dtype)
+        return DynamicsGP(self.train_x, self.train_y, self.hyperparameters, outputs=self.outputs,
+                          state_dim=self.state_dim, constant_outputs=self.constant_outputs,
+                          constant_delta=self.constant_delta, dtype=self.train_x.dtype)

@@ -20,12 +20,17 @@ WARM_MIN_SHARE = 0.5
 
 @dataclass(frozen=True)
 class PreviousFit:
-    """The last fit's θ_p, per-output objective `E` (log evidence + log prior, / n), n, and Z `m x D` if sparse."""
+    """The last fit's θ_p, per-output objective `E` (log evidence + log prior, / n), n, Z `m x D` if sparse.
+
+    ``outputs``: the state dimensions of θ_p's E outputs (None: 0..E−1, a fit recorded before models held them).
+    """
 
     theta: GPHyperparameters
     objective: Tensor
     num_points: int
     inducing: Tensor | None = None
+    outputs: tuple[int, ...] | None = None
+    constant_outputs: tuple[int, ...] = ()  # the outputs it modelled as deterministic (a constant Δ)
 
     @classmethod
     def of(cls, model: DynamicsGP) -> PreviousFit:
@@ -33,7 +38,13 @@ class PreviousFit:
         if model.fit_objective is None:
             raise ValueError("the model has not been fitted: no objective to start the next fit from")
         inducing = model.inducing_points.clone() if isinstance(model, SparseDynamicsGP) else None
-        return cls(model.hyperparameters, model.fit_objective.clone(), len(model.train_x), inducing)
+        return cls(model.hyperparameters, model.fit_objective.clone(), len(model.train_x), inducing, model.outputs,
+                   model.constant_outputs)
+
+    @property
+    def modelled(self) -> tuple[int, ...]:
+        """The state dimensions of θ_p's outputs (0..E−1 where none were recorded)."""
+        return tuple(range(self.theta.num_outputs)) if self.outputs is None else self.outputs
 
     def speaks_for(self, num_points: int) -> bool:
         """Whether this fit saw enough of ``num_points`` (``WARM_MIN_SHARE``) for the next fit to start from it."""
@@ -43,18 +54,22 @@ class PreviousFit:
         """The same fit on another dtype and device."""
         inducing = None if self.inducing is None else self.inducing.to(dtype=dtype, device=device)
         return PreviousFit(self.theta.to(dtype=dtype, device=device), self.objective.to(dtype=dtype, device=device),
-                           self.num_points, inducing)
+                           self.num_points, inducing, self.outputs, self.constant_outputs)
 
     def state_dict(self) -> dict[str, object]:
         """Tensors and primitives on the CPU, for a checkpoint (:meth:`from_state_dict` inverts it)."""
         return {"theta": self.theta.state_dict(), "objective": self.objective.cpu(), "num_points": self.num_points,
-                "inducing": None if self.inducing is None else self.inducing.cpu()}
+                "inducing": None if self.inducing is None else self.inducing.cpu(),
+                "outputs": None if self.outputs is None else list(self.outputs),
+                "constant_outputs": list(self.constant_outputs)}
 
     @classmethod
     def from_state_dict(cls, state: Mapping[str, object]) -> PreviousFit:
         """Rebuild :meth:`state_dict`."""
+        outputs = state.get("outputs")
         return cls(GPHyperparameters(**state["theta"]), state["objective"], int(state["num_points"]),
-                   state["inducing"])
+                   state["inducing"], None if outputs is None else tuple(int(d) for d in outputs),
+                   tuple(int(d) for d in state.get("constant_outputs", ())))
 
     @classmethod
     def of_checkpoint(cls, checkpoint: Mapping[str, object]) -> PreviousFit | None:

@@ -50,7 +50,7 @@ def compliance_rows(source: SourceRun, targets: Sequence[Path], args: argparse.N
     rows = []
     for path in targets:
         target = SourceRun.load(path)
-        source.check_compatible(target.task)
+        source.check_compatible(target.task, target.outputs)
         model = target.model(features)
         values = {rho: compliance_value(args.compliance, source_model, model, bandwidth=args.bandwidth,
                                         temperature=args.temperature, resolution=rho)

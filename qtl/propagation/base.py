@@ -19,15 +19,18 @@ from qtl.rewards import ExpectedSaturatingReward
 class Rollout:
     """A predicted trajectory: V = Σ_{t=1..H} E[r(x_t)] and the per-step distributions.
 
-    ``value`` `...` (Eq. 4, successor states x_1..x_H scored), ``rewards`` `... x H`,
+    ``value`` `...` (Eq. 4, successor states x_1..x_H scored; with the task's constraints
+    Σ_t S_t (E[r(x_t)] − c_t), :mod:`qtl.constraints`), ``rewards`` E[r(x_t)] `... x H`,
     ``states`` mean `... x (H+1) x D` and cov `... x (H+1) x D x D` (x_0..x_H), ``actions``
-    mean `... x H x F` and cov `... x H x F x F` (u_0..u_{H−1}).
+    mean `... x H x F` and cov `... x H x F x F` (u_0..u_{H−1}), ``survival`` S_1..S_H `... x H`
+    (None: no terminate constraint).
     """
 
     value: Tensor
     rewards: Tensor
     states: Gaussian
     actions: Gaussian
+    survival: Tensor | None = None
 
 
 class PosteriorSource(Protocol):

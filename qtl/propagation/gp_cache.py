@@ -15,12 +15,22 @@ from qtl.propagation.base import DynamicsSource
 from qtl.rewards import ExpectedSaturatingReward
 
 log = logging.getLogger(__name__)
+# The cache's entries that describe the outputs, the same in every cache of a stack: not stacked; the indices not cast.
+UNSTACKED = ("outputs", "constant_outputs", "constant_delta")
+INDICES = ("outputs", "constant_outputs")
 
 
 def _tensors(cache: GPPosteriorCache) -> dict[str, Tensor]:
-    """One cache's tensors by name: inputs, (K + σ_ε²I)⁻¹, β and θ (and a sparse GP's path update factors)."""
+    """One cache's tensors by name: inputs, (K + σ_ε²I)⁻¹, β and θ (and a sparse GP's path update factors).
+
+    ``outputs`` (`E`, integers): the state dimensions of the E outputs (0..E−1 when the cache names none);
+    ``constant_outputs`` (`C`, integers) and ``constant_delta`` (`C`) where some outputs are deterministic.
+    """
     theta = cache.hyperparameters
+    num_outputs = cache.beta.shape[-2]
+    outputs = tuple(range(num_outputs)) if cache.outputs is None else cache.outputs
     tensors = {
+        "outputs": torch.tensor(outputs, dtype=torch.long, device=cache.beta.device),  # E
         "inputs": cache.inputs,  # n x D
         "K_inv": cache.K_inv,  # E x n x n
         "beta": cache.beta,  # E x n
@@ -28,6 +38,9 @@ def _tensors(cache: GPPosteriorCache) -> dict[str, Tensor]:
         "signal_variance": theta.signal_variance,  # E
         "noise_variance": theta.noise_variance,  # E
     }
+    if cache.constant_outputs:  # outputs of a deterministic Δ (qtl.models.constant): their dims `C` and Δ `C`
+        dims = torch.tensor(cache.constant_outputs, dtype=torch.long, device=cache.beta.device)
+        tensors |= {"constant_outputs": dims, "constant_delta": cache.constant_delta.to(cache.beta)}
     if cache.prior_inv is not None:  # a sparse GP's: its pathwise update (m inducing inputs as n)
         tensors |= {"prior_inv": cache.prior_inv, "update_root": cache.update_root}  # E x m x m each
     return tensors
@@ -40,11 +53,22 @@ def cache_tensors(model: DynamicsSource) -> dict[str, Tensor]:
     if isinstance(model, GPPosteriorCache):
         return _tensors(model)
     caches = list(model)
-    shapes = {(c.inputs.shape, c.K_inv.shape, c.prior_inv is None) for c in caches}
+    shapes = {(c.inputs.shape, c.K_inv.shape, c.prior_inv is None, c.outputs, c.state_dim, c.constant_outputs,
+               None if c.constant_delta is None else tuple(c.constant_delta.tolist())) for c in caches}
     if len(shapes) != 1:
-        raise ValueError(f"stacked GP caches must share n, D, E and kind (exact or sparse); got {sorted(shapes)}")
+        raise ValueError(f"stacked GP caches must share n, D, E, outputs (constant ones and their Δ) and kind "
+                         "(exact or sparse); got "
+                         f"{sorted(shapes, key=str)}")
     per_cache = [_tensors(c) for c in caches]
-    return {name: torch.stack([t[name] for t in per_cache]) for name in per_cache[0]}
+    return {name: per_cache[0][name] if name in UNSTACKED else torch.stack([t[name] for t in per_cache])
+            for name in per_cache[0]}
+
+
+def _state_dim(model: DynamicsSource) -> int | None:
+    """The state dimension a model, a cache or stacked caches name (None: E, as a cache that names none)."""
+    if hasattr(model, "posterior_cache") or isinstance(model, GPPosteriorCache):
+        return getattr(model, "state_dim", None)
+    return next(iter(model)).state_dim
 
 
 def propagation_inputs(
@@ -56,14 +80,15 @@ def propagation_inputs(
 ) -> tuple[dict[str, Tensor], AngleFeatures, torch.dtype]:
     """The model's tensors (detached, in ``dtype`` or the model's), the angle features, and the dtype.
 
-    GP inputs must be [φ(x), u] (`D + K + F`) and outputs Δ in raw coordinates (`E = D`); the policy
-    must act on φ(x) and the reward score D-dimensional states. A mismatch raises ValueError.
+    GP inputs must be [φ(x), u] (`D + K + F`) and outputs Δ in raw coordinates of the state dimensions
+    ``data["outputs"]`` (`E`, all D of them unless the model names fewer); the policy must act on φ(x) and the
+    reward score D-dimensional states. A mismatch raises ValueError.
     """
     data = cache_tensors(model)
     dtype = dtype or data["inputs"].dtype
     _warn_if_imprecise(data, dtype)
-    data = {k: v.detach().to(dtype) for k, v in data.items()}
-    state_dim = data["beta"].shape[-2]
+    data = {k: v if k in INDICES else v.detach().to(dtype) for k, v in data.items()}
+    state_dim = _state_dim(model) or data["beta"].shape[-2]
     features = AngleFeatures(state_dim, angle_dims)
     gp_input_dim = data["inputs"].shape[-1]
     if gp_input_dim != features.output_dim + policy.output_dim:

@@ -29,6 +29,7 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
+from qtl.constraints import Constraint, gaussian_return
 from qtl.errors import UserError
 from qtl.gaussian import Gaussian, GaussianMap, MomentMatch, batch_matmul, full_batch, symmetrize
 from qtl.kernels import SEKernelMoments
@@ -47,7 +48,8 @@ class MomentMatching:
     ``model``: a :class:`~qtl.models.GPPosteriorCache` (or anything with ``posterior_cache()``),
     or a sequence of caches of equal sizes, stacked as a leading batch dimension `M` that
     broadcasts against the batch of the start distribution (and a batched policy's restarts `R`). GP inputs are
-    [φ(x), u] (`D + K + F`), GP outputs Δ = x_{t+1} − x_t in raw coordinates (`E = D`).
+    [φ(x), u] (`D + K + F`), GP outputs Δ = x_{t+1} − x_t in raw coordinates of the state dimensions the model
+    names (``outputs``: all D, or the modelled ones; deterministic ``constant_outputs`` go to the step's offset).
     ``policy``: acts on the features φ(x) (``prepare()`` gives its moment map).
     ``reward``: scores the successor states. ``angle_dims``: the dynamics' angle dimensions.
     ``dtype``: of the propagation (default: the cache's); the policy must share it, start
@@ -55,6 +57,8 @@ class MomentMatching:
     GP, reward; ``qtl.build`` resolves it from ``kernels.*``). ``integration``: ``delta`` (x + Δ), ``speed`` (the
     GP's modelled outputs only, positions integrated from their velocities; needs ``kinematics``: positions,
     velocities, period T) or a :class:`~qtl.propagation.integration.LinearIntegration` (its A, J and outputs).
+    ``constraints``: the task's state bounds (:mod:`qtl.constraints`): the return weights each step by the
+    survival S_t = Π_{τ≤t} p_τ (terminate) and subtracts w (1 − p_t) (penalty), p_t from x_t's marginals.
     """
 
     @staticmethod
@@ -73,9 +77,11 @@ class MomentMatching:
         include_noise: bool = False,
         integration: str | LinearIntegration = "delta",
         kinematics: Kinematics | None = None,
+        constraints: Sequence[Constraint] = (),
         dtype: torch.dtype | None = None,
         engine: Engine = DEFAULT_ENGINE,
     ) -> None:
+        self.constraints = tuple(constraints)
         if isinstance(integration, str):
             self.check_settings(integration=integration)
             if integration == "speed" and kinematics is None:
@@ -89,7 +95,7 @@ class MomentMatching:
             make_integration(integration, self.state_dim, kinematics, self.dtype, data["beta"].device)
             if isinstance(integration, str) else integration
         )
-        data = self.integration.select_outputs(data)
+        self.integration, data = self.integration.for_model(data)  # the model's outputs, checked
         self.policy = policy
         self.reward = reward
         self.include_noise = include_noise
@@ -161,7 +167,8 @@ class MomentMatching:
     def rollout(self, start: Gaussian, horizon: int) -> Rollout:
         """H steps from N(μ_0, Σ_0); V = Σ_{t=1..H} E[r(x_t)] (Eq. 4), differentiable in ψ.
 
-        A batched policy (ψ `R x ...`, restarts) gives R rollouts at once: ``value`` `R` and so on.
+        With constraints V = Σ_t S_t (E[r(x_t)] − c_t) (:func:`qtl.constraints.gaussian_return`). A batched
+        policy (ψ `R x ...`, restarts) gives R rollouts at once: ``value`` `R` and so on.
         """
         if start.dim != self.state_dim:
             raise ValueError(f"start must be a {self.state_dim}-D distribution, got {start.dim}-D")
@@ -179,15 +186,18 @@ class MomentMatching:
         # The successors x_1..x_H are scored in one batched call, outside the recursion.
         successors = Gaussian(trajectory.mean[..., 1:, :], trajectory.cov[..., 1:, :, :])
         rewards = self.reward.expected(successors, self.engine)  # ... x H
+        value, survival = (gaussian_return(self.constraints, rewards, successors) if self.constraints
+                           else (rewards.sum(-1), None))
         return Rollout(
-            value=rewards.sum(-1),
+            value=value,
             rewards=rewards,
             states=trajectory,
             actions=_stack_states([a.output for a in actions]),
+            survival=survival,
         )
 
     def expected_return(self, start: Gaussian, horizon: int) -> Tensor:
-        """V^π(x_0) = Σ_{t=1..H} E[r(x_t)] (Eq. 4): `...`, differentiable in ψ."""
+        """V^π(x_0) = Σ_{t=1..H} E[r(x_t)] (Eq. 4; with constraints, survival-weighted): `...`, differentiable in ψ."""
         return self.rollout(start, horizon).value
 
 

@@ -13,6 +13,7 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
+from qtl.constraints import PARTICLE_TEMPERATURE, Constraint, particle_return
 from qtl.errors import NonFiniteObjective, UserError
 from qtl.gaussian import Gaussian, matrix_root, sample_moments
 from qtl.kernels.engine import DEFAULT_ENGINE, Engine
@@ -68,7 +69,10 @@ class Particles:
     the task's): a long rollout of a chaotic system amplifies the start's spread, and with it the variance of the
     reparameterised gradient (MC-PILCO's cart-pole starts with std 0.01; PILCO's task with 0.1).
     ``path_dtype``: ``float64`` (default) evaluates pathwise functions in the propagation's dtype, ``float32``
-    in float32 and returns them in the propagation's. ``seed``: of the base noise.
+    in float32 and returns them in the propagation's. ``seed``: of the base noise. ``constraints``: the task's state
+    bounds (:mod:`qtl.constraints`): a particle that leaves a terminate bound stops collecting reward from that step
+    on, by the running product of a sigmoid of its signed distance to the bound over ``constraint_temperature`` τ
+    (state units; 0: the hard indicator, no gradient); a penalty bound costs w (1 − indicator) per particle and step.
     ``dtype``: of the propagation (default: the cache's); the policy must share it. ``engine``: the code of the
     policy's actions, the pathwise functions and expected rewards (``qtl.build`` resolves it from ``kernels.*``).
     """
@@ -130,6 +134,8 @@ class Particles:
         integration: str = "delta",
         kinematics: Kinematics | None = None,
         search_start_scale: float = 1.0,
+        constraints: Sequence[Constraint] = (),
+        constraint_temperature: float = PARTICLE_TEMPERATURE,
         seed: int = 0,
         dtype: torch.dtype | None = None,
         engine: Engine = DEFAULT_ENGINE,
@@ -141,6 +147,11 @@ class Particles:
         if integration == "speed" and kinematics is None:
             raise UserError("propagation.integration=speed needs the task's kinematics: add task.kinematics "
                             "(positions, velocities) or set propagation.integration=delta")
+        if not constraint_temperature >= 0:
+            raise UserError(f"constraint_temperature must be >= 0 (0: the hard indicator), "
+                            f"got {constraint_temperature}")
+        self.constraints = tuple(constraints)
+        self.constraint_temperature = float(constraint_temperature)
         self.reward = reward  # the task's: predictions and figures
         self.search_reward: ExpectedSaturatingReward | SearchReward = objective_reward(
             reward, reward_width_scale=reward_width_scale, reward_task_weight=reward_task_weight,
@@ -164,7 +175,7 @@ class Particles:
 
         # The parts: the step, the sampler and the resampler, built once.
         self.integration = make_integration(integration, self.state_dim, kinematics, self.dtype, data["beta"].device)
-        data = self.integration.select_outputs(data)
+        self.integration, data = self.integration.for_model(data)  # the model's outputs, checked
         self.resample = gaussian_resample if self.gaussian_resampling else None
 
         # Everything that depends only on data and θ is computed here, once.
@@ -264,7 +275,7 @@ class Particles:
         self, start: Gaussian, horizon: int, draw: int | None = None,
         reward: ExpectedSaturatingReward | AngleDistanceReward | RewardMixture | SearchReward | None = None,
     ) -> Rollout:
-        """H steps from N(μ_0, Σ_0); V = mean over particles of Σ_{t=1..H} r(x_t) (Eq. 4).
+        """H steps from N(μ_0, Σ_0); V = mean over particles of Σ_{t=1..H} r(x_t) (Eq. 4), or of Σ_t s_t (r_t − c_t).
 
         ``states`` and ``actions`` are the particles' per-step sample means and (unbiased)
         covariances. Uses the base noise of the latest evaluation unless ``draw`` is given, and
@@ -277,7 +288,13 @@ class Particles:
             per_particle = reward.expected(predictive, self.engine)  # ... x P x H, E[r(x_t) | x_{t−1}]
         else:
             per_particle = reward(states[..., 1:, :])  # ... x P x H, successor states x_1..x_H
-        value = per_particle.sum(-1).mean(-1)
+        survival = None
+        if self.constraints:  # per particle: its relaxed survival s_t and penalty cost c_t (qtl.constraints)
+            per_path, survival = particle_return(self.constraints, per_particle, states[..., 1:, :],
+                                                 self.constraint_temperature)
+            value, survival = per_path.mean(-1), None if survival is None else survival.mean(-2)
+        else:
+            value = per_particle.sum(-1).mean(-1)
         if not torch.isfinite(value).all():
             finite = torch.isfinite(states).all(-1).flatten(end_dim=-2).all(0)  # H+1
             first = int((~finite).nonzero()[0, 0]) if not finite.all() else None
@@ -292,6 +309,7 @@ class Particles:
             rewards=per_particle.mean(-2),
             states=sample_moments(states, dim=-3),
             actions=sample_moments(actions, dim=-3),
+            survival=survival,
         )
 
     def expected_return(self, start: Gaussian, horizon: int) -> Tensor:

@@ -26,6 +26,7 @@ EVENT_NAMES = {
     "search_runs_stopped": "policy-search runs stopped early at an invalid ψ",
     "cholesky_jitter": "Cholesky factorisations retried with jitter",
     "gp_fit_failures": "GP-fit failures (a restart discarded, or L-BFGS resumed from its best θ)",
+    "constant_outputs": "outputs with a constant Δ, modelled as deterministic (per model fit)",
 }
 
 

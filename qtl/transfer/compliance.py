@@ -1,5 +1,8 @@
 """Task compliance Λ (Eq. 14): how well the source dynamics GP explains the target's transitions.
 
+Both are computed on the outputs the two GPs learn: the modelled outputs (all but the positions under speed
+integration), less any either modelled as deterministic (a constant Δ in its data, :mod:`qtl.models.constant`).
+
 The source definition, Lazaric, Restelli & Bonarini (ICML 2008), as the public reimplementation in
 trlib (github.com/AndreaTirinzoni/iw-transfer-rl, ``lazaric2008.py``) has it; the paper's own text
 was not at hand, see ``docs/dev/compliance-notes.md`` for what is known and from where. A target tuple
@@ -84,14 +87,28 @@ def leave_one_out(model: DynamicsGP) -> tuple[Tensor, Tensor]:
     return mean, variance
 
 
-def _check_dimensions(source: DynamicsGP, target: DynamicsGP) -> None:
-    """Raise unless the two GPs share their input and output dimensions (Eq. 14)."""
-    if (source.input_dim, source.num_outputs) != (target.input_dim, target.num_outputs):
+def _shared_outputs(source: DynamicsGP, target: DynamicsGP) -> tuple[list[int] | slice, list[int] | slice]:
+    """The columns of the outputs both GPs learn, in the target's order: the source's and the target's (Eq. 14).
+
+    All of them (as slices) when the GPs learn the same outputs; else those they share, an output one of them
+    modelled as deterministic (its Δ constant in its data, :mod:`qtl.models.constant`) left out. Different input
+    dimensions or modelled outputs (learned or deterministic), or no learned output in common, raise ValueError.
+    """
+    modelled = [sorted(m.outputs + m.constant_outputs) for m in (source, target)]
+    if source.input_dim != target.input_dim or modelled[0] != modelled[1]:
         raise ValueError(
             f"source GP has D={source.input_dim} inputs and E={source.num_outputs} outputs, "
             f"target GP has D={target.input_dim} inputs and E={target.num_outputs} outputs: "
-            "task compliance needs the same GP input and output dimensions"
+            f"task compliance needs the same GP input dimension and modelled outputs (source {modelled[0]}, "
+            f"target {modelled[1]})"
         )
+    if source.outputs == target.outputs:
+        return slice(None), slice(None)
+    shared = [d for d in target.outputs if d in source.outputs]
+    if not shared:
+        raise ValueError(f"source GP learns outputs {list(source.outputs)}, target GP {list(target.outputs)} (the "
+                         "others are deterministic): no output in common for task compliance")
+    return [source.outputs.index(d) for d in shared], [target.outputs.index(d) for d in shared]
 
 
 def _check_resolution(resolution: float) -> None:
@@ -111,19 +128,19 @@ def task_compliance(
     source: DynamicsGP, target: DynamicsGP, *, temperature: float | None = None, resolution: float = 0.0
 ) -> Compliance:
     """Task compliance Λ of the target model's training tuples under the source model (Eq. 14)."""
-    _check_dimensions(source, target)
-    kappa = float(target.num_outputs if temperature is None else temperature)
+    source_cols, target_cols = _shared_outputs(source, target)
+    inputs, deltas = target.train_x, target.train_y[:, target_cols]  # n x D, n x E (the outputs both GPs learn)
+    kappa = float(deltas.shape[-1] if temperature is None else temperature)
     if not (math.isfinite(kappa) and kappa > 0):
         raise ValueError(f"temperature must be finite and > 0, got {temperature}")
     _check_resolution(resolution)
 
-    inputs, deltas = target.train_x, target.train_y  # n x D, n x E
     floor = _resolution_floor(deltas, resolution)  # E
     # log p_S(j): the source GP's predictive, its own data and θ, noise included.
-    source_mean, source_var = source.predict(inputs, include_noise=True)  # n x E each
+    source_mean, source_var = (t[:, source_cols] for t in source.predict(inputs, include_noise=True))  # n x E each
     log_source = _gaussian_log_density(deltas, source_mean.to(deltas), source_var.to(deltas) + floor).sum(-1)  # n
     # log p_T(j): the target GP's leave-one-out predictive.
-    loo_mean, loo_var = leave_one_out(target)  # n x E each
+    loo_mean, loo_var = (t[:, target_cols] for t in leave_one_out(target))  # n x E each
     log_target = _gaussian_log_density(deltas, loo_mean, loo_var + floor).sum(-1)  # n
     # P(S | τ_j) = logistic((log p_S − log p_T) / κ); Λ = mean over j (Eq. 14).
     probabilities = torch.sigmoid((log_source - log_target) / kappa)  # n
@@ -183,15 +200,15 @@ def kernel_compliance(
     0 for ``"none"``). Λ = mean over i of λ_i, the prior P(S) = 1 of a single source. Without a
     bandwidth, for target tuples of the source task itself and a calibrated source, E[λ_i] = 2^(−E/2).
     """
-    _check_dimensions(source, target)
+    source_cols, target_cols = _shared_outputs(source, target)
     _check_bandwidth(bandwidth)
     _check_resolution(resolution)
 
-    inputs, deltas = target.train_x, target.train_y  # n x D, n x E
+    inputs, deltas = target.train_x, target.train_y[:, target_cols]  # n x D, n x E (the outputs both GPs learn)
     floor = _resolution_floor(deltas, resolution)  # E
-    source_deltas = source.train_y.to(deltas)  # m x E
+    source_deltas = source.train_y[:, source_cols].to(deltas)  # m x E
     width = scott_bandwidth(source_deltas) if bandwidth == "scott" else torch.zeros_like(source_deltas[0])  # E
-    mean, variance = source.predict(inputs, include_noise=True)  # n x E each
+    mean, variance = (t[:, source_cols] for t in source.predict(inputs, include_noise=True))  # n x E each
     mean, variance = mean.to(deltas), variance.to(deltas) + floor + width.square()
     log_kernel = -0.5 * (deltas - mean).square() / variance  # n x E: log p_S(Δ_ia) − log p_S(μ_ia)
     probabilities = log_kernel.sum(-1).exp()  # n: λ_i, the kernels of the E outputs multiplied

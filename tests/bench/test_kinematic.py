@@ -1,4 +1,4 @@
-"""The integration comparison's config: the step set, and a task's known kinematics where its YAML has none."""
+"""The integration comparison's config: the step set, the task's declared kinematics kept."""
 
 from __future__ import annotations
 
@@ -8,12 +8,19 @@ from qtl.task import Kinematics
 from tests.helpers import tiny_config
 
 
-def test_speed_gets_the_known_kinematics_of_a_task_that_declares_none():
+def test_the_mountain_cars_declared_kinematics_are_its_five_map_steps_per_decision():
     cfg = tiny_config("task=mountaincar")
     speed = with_integration(cfg, "speed")
-    assert cfg.task.kinematics is None and cfg.propagation.integration == "delta"  # the original is left alone
-    assert build(speed).task.kinematics == Kinematics((0,), (1,), 1.0)
-    assert with_integration(cfg, "delta").task.kinematics is None
+    assert cfg.propagation.integration == "delta" and speed.propagation.integration == "speed"  # a copy
+    assert build(speed).task.kinematics == Kinematics((0,), (1,), 5.0, 0.6)
+
+
+def test_kinematics_can_be_declared_from_the_command_line():
+    # The schema's default is an empty node (none declared), so its keys take overrides as any other node's.
+    cfg = tiny_config("task=mountaincar_continuous", "task.kinematics.positions=[0]", "task.kinematics.velocities=[1]",
+                      "task.kinematics.period=5.0", "task.kinematics.weight=1.0")
+    assert build(with_integration(cfg, "speed")).task.kinematics == Kinematics((0,), (1,), 5.0, 1.0)
+    assert build(tiny_config("task=mountaincar_continuous")).task.kinematics is None
 
 
 def test_a_declared_kinematics_is_kept():

@@ -76,14 +76,14 @@ def test_a_gpu_that_is_not_there_is_one_line_before_any_work(tmp_path):
 
 
 def test_keys_for_a_node_that_is_null_in_its_yaml_are_one_line(tmp_path):
-    """OmegaConf cannot merge keys into a null structured node (here task.kinematics); it raises its own
+    """OmegaConf cannot merge keys into a null structured node (here task.search_reward); it raises its own
     AttributeError, not one of its errors: still one line that names the key, not a traceback."""
     environ = {k: v for k, v in os.environ.items() if k != "HYDRA_FULL_ERROR"}
     done = subprocess.run([sys.executable, "-m", "qtl", "task=mountaincar",
-                           "task.kinematics={positions:[0],velocities:[1],period:1.0}", *TINY,
+                           "task.search_reward={target:[0.5,null],widths:[0.3,null]}", *TINY,
                            f"hydra.run.dir={tmp_path / 'run'}"],
                           cwd=tmp_path, capture_output=True, text=True, timeout=300, env=environ)
     lines = done.stderr.strip().splitlines()
     assert done.returncode == 1 and len(lines) == 1, done.stderr
-    assert lines[0].startswith("qtl-train: cannot apply the override of task.kinematics: ") and "null" in lines[0]
+    assert lines[0].startswith("qtl-train: cannot apply the override of task.search_reward: ") and "null" in lines[0]
     assert not (tmp_path / "run").exists()

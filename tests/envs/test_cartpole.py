@@ -239,6 +239,71 @@ def test_literal_reward_reading_is_an_option() -> None:
     assert env.reward_spec(np.zeros(4)) == pytest.approx(math.exp(-0.125 * 4 * 0.36))
 
 
+# ---- track limit ------------------------------------------------------------------------------
+def test_check_env_with_a_track_limit() -> None:
+    env = gymnasium.make(ENV_ID, track_limit=0.5)
+    assert env.unwrapped.track_limit == 0.5
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        check_env(env.unwrapped)
+    unexpected = [str(w.message) for w in caught if not any(s in str(w.message) for s in EXPECTED_CHECK_ENV_WARNINGS)]
+    assert not unexpected
+
+
+@pytest.mark.parametrize(("limit", "push"), [(0.5, 1.0), (0.5, -1.0), (0.3, 0.6)])
+def test_track_limit_terminates_exactly_when_the_cart_leaves_the_track(limit: float, push: float) -> None:
+    env = CartPoleSwingUpEnv(track_limit=limit, obs_noise_std=0.01)
+    assert env.track_limit == limit
+    env.reset(seed=0)
+    for _ in range(env.horizon):
+        _, reward, terminated, truncated, info = env.step(np.array([push]))
+        assert terminated is bool(abs(info["state"][0]) > limit)  # the noise-free state decides
+        assert reward == env.reward_spec(info["state"])
+        if terminated:
+            break
+    assert terminated and not truncated  # a steady push runs the cart off its track within the episode
+
+
+def test_track_limit_on_the_bound_does_not_terminate() -> None:
+    env = CartPoleSwingUpEnv(track_limit=0.5, horizon=1)
+    env.reset(options={"state": [0.5, 0.0, 0.0, 0.0]})  # at rest on the bound: |x| = 0.5 is not > 0.5
+    *_, terminated, truncated, info = env.step(np.array([0.0]))
+    assert info["state"][0] == pytest.approx(0.5) and terminated is False and truncated is True
+
+
+def test_default_track_is_unbounded_and_the_dynamics_unchanged() -> None:
+    actions = np.random.default_rng(1).uniform(-1, 1, size=50)
+
+    def episode(env: CartPoleSwingUpEnv) -> tuple[np.ndarray, list[float], list[bool]]:
+        obs, _ = env.reset(seed=4)
+        observations, rewards, ends = [obs], [], []
+        for a in actions:
+            obs, reward, terminated, truncated, _ = env.step(np.array([a]))
+            observations.append(obs)
+            rewards.append(reward)
+            ends.append((terminated, truncated))
+        return np.array(observations), rewards, ends
+
+    default = episode(CartPoleSwingUpEnv(obs_noise_std=0.01))
+    assert CartPoleSwingUpEnv().track_limit is None
+    assert np.abs(default[0][:, 0]).max() > 1.0  # random pushes leave any short track
+    for other in (CartPoleSwingUpEnv(obs_noise_std=0.01, track_limit=None),
+                  CartPoleSwingUpEnv(obs_noise_std=0.01, track_limit=1e6)):
+        observations, rewards, ends = episode(other)
+        np.testing.assert_array_equal(observations, default[0])
+        assert rewards == default[1] and ends == default[2]
+    assert [end for end, _ in default[2]] == [False] * len(actions)
+
+
+def test_render_marks_the_track_ends() -> None:
+    frames = []
+    for limit in (None, 0.5):
+        env = CartPoleSwingUpEnv(render_mode="rgb_array", track_limit=limit)
+        env.reset(options={"state": [0.0, 0.0, 0.0, 0.0]})
+        frames.append(env.render())
+    assert frames[0].shape == frames[1].shape and np.any(frames[0] != frames[1])
+
+
 # ---- kwargs -----------------------------------------------------------------------------------
 @pytest.mark.parametrize(
     ("name", "value"),
@@ -263,6 +328,10 @@ def test_literal_reward_reading_is_an_option() -> None:
         ("pole_mass", float("nan")),
         ("pole_mass", "heavy"),
         ("render_mode", "human"),
+        ("track_limit", 0.0),
+        ("track_limit", -0.5),
+        ("track_limit", float("inf")),
+        ("track_limit", "short"),
     ],
 )
 def test_bad_kwargs_raise(name: str, value: object) -> None:

@@ -83,6 +83,29 @@ def test_covariance_is_that_of_the_stepped_draws(mc):
     mc.assert_mean(integration.step(x, torch.zeros(2, dtype=DTYPE)), stepped, "state mean")
 
 
+def test_weight_one_is_semi_implicit_euler_and_n_of_its_steps_are_weight_n_plus_one_over_2n():
+    gen = torch.Generator().manual_seed(1)
+    x = torch.randn(9, 2, generator=gen, dtype=DTYPE)
+    delta = torch.randn(9, 1, generator=gen, dtype=DTYPE)
+    # w = 1: q_{t+1} = q_t + T q̇_{t+1}, semi-implicit Euler.
+    nxt = SpeedIntegration(2, Kinematics((0,), (1,), 1.0, 1.0)).step(x, delta)
+    torch.testing.assert_close(nxt[:, 1], x[:, 1] + delta[:, 0], rtol=0, atol=0)
+    torch.testing.assert_close(nxt[:, 0], x[:, 0] + nxt[:, 1], rtol=1e-15, atol=1e-15)
+    # n = 5 semi-implicit Euler steps of one time unit with equal increments Δq̇/5 (the mountain car's decision):
+    # T = 5, w = (n + 1)/(2n) = 0.6.
+    q, v = x[:, 0].clone(), x[:, 1].clone()
+    for _ in range(5):
+        v = v + delta[:, 0] / 5
+        q = q + v
+    nxt = SpeedIntegration(2, Kinematics((0,), (1,), 5.0, 0.6)).step(x, delta)
+    torch.testing.assert_close(nxt, torch.stack([q, v], dim=-1), rtol=1e-13, atol=1e-13)
+
+
+def test_a_weight_outside_zero_one_is_a_task_error():
+    with pytest.raises(TaskError, match=r"task\.kinematics\.weight must be in \[0, 1\]"):
+        SpeedIntegration(4, Kinematics((0, 2), (1, 3), 0.1, 1.5))
+
+
 @pytest.mark.parametrize(("positions", "velocities", "period"), [
     ((0, 2), (1,), 0.1),  # unpaired
     ((0, 1), (1, 3), 0.1),  # a velocity that is also a position
@@ -198,7 +221,7 @@ def test_speed_integration_needs_kinematics_and_a_known_name(gp_factory):
 
 @pytest.mark.parametrize(
     ("overrides", "message"),
-    [(("task=mountaincar", "propagation.integration=speed"), "task mountaincar declares no kinematics"),
+    [(("task=pendulum", "propagation.integration=speed"), "task pendulum declares no kinematics"),
      (("propagation.integration=euler",), "propagation.integration must be one of delta, speed")],
 )
 def test_build_refuses_speed_integration_it_cannot_do_before_any_work(overrides, message):

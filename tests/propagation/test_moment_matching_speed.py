@@ -225,7 +225,7 @@ def test_speed_needs_kinematics_and_a_known_name(gp_factory):
 
 @pytest.mark.parametrize(
     ("overrides", "message"),
-    [(("task=mountaincar", "propagation.integration=speed"), "task mountaincar declares no kinematics"),
+    [(("task=pendulum", "propagation.integration=speed"), "task pendulum declares no kinematics"),
      (("propagation.integration=euler",), "propagation.integration must be one of delta, speed"),
      (("propagation.integration=speed", "task.kinematics.velocities=[1]"), "as many velocities as positions")],
 )

@@ -250,3 +250,32 @@ def test_bad_resolution_raises(gp_factory, monkeypatch, resolution: float) -> No
     _forbid_work(monkeypatch)
     with pytest.raises(ValueError, match="resolution must be finite and >= 0"):
         kernel_compliance(source, target, resolution=resolution)
+
+
+def _modelled(model: DynamicsGP, outputs: list[int]) -> DynamicsGP:
+    """``model``'s data and θ of ``outputs`` only, as the loop fits it under speed integration."""
+    return DynamicsGP(model.train_x, model.train_y[:, outputs], model.hyperparameters.select(torch.tensor(outputs)),
+                      outputs=outputs, state_dim=model.num_outputs)
+
+
+def test_compliance_is_computed_on_the_modelled_outputs(gp_factory):
+    # Without a bandwidth each output's kernel factor depends on that output alone: the modelled models' factors
+    # are the full models' factors of those outputs, and Λ their product's mean.
+    source, target = gp_factory(30, 4, 1, (2,), seed=41), gp_factory(20, 4, 1, (2,), seed=42)
+    outputs = [1, 3]
+    full = kernel_compliance(source, target, bandwidth="none", resolution=0.1)
+    cut = kernel_compliance(_modelled(source, outputs), _modelled(target, outputs), bandwidth="none", resolution=0.1)
+    torch.testing.assert_close(cut.log_kernel, full.log_kernel[:, outputs], rtol=1e-10, atol=1e-12)
+    assert cut.value == pytest.approx(float(full.log_kernel[:, outputs].sum(-1).exp().mean()), rel=1e-10)
+    with pytest.raises(ValueError, match=r"modelled outputs \(source \[1, 3\], target \[0, 2\]\)"):
+        kernel_compliance(_modelled(source, outputs), _modelled(target, [0, 2]))
+
+
+def test_compliance_leaves_out_an_output_one_side_modelled_as_deterministic(gp_factory):
+    # The target found output 1's Δ constant: Λ is computed on output 3, the one both GPs learn.
+    source, target = gp_factory(30, 4, 1, (2,), seed=41), gp_factory(20, 4, 1, (2,), seed=42)
+    both = kernel_compliance(_modelled(source, [1, 3]), _modelled(target, [1, 3]), bandwidth="none", resolution=0.1)
+    fixed = DynamicsGP(target.train_x, target.train_y[:, [3]], target.hyperparameters.select(torch.tensor([3])),
+                       outputs=[3], state_dim=4, constant_outputs=[1], constant_delta=torch.zeros(1))
+    one = kernel_compliance(_modelled(source, [1, 3]), fixed, bandwidth="none", resolution=0.1)
+    torch.testing.assert_close(one.log_kernel, both.log_kernel[:, 1:], rtol=1e-10, atol=1e-12)

@@ -17,7 +17,7 @@ from qtl.policies import SquashedPolicy
 from qtl.task import Task
 from qtl.transfer import Bayesian, Forgetting, Free, NoTransfer, SourceRun
 from qtl.transfer.compliance import kernel_compliance, task_compliance
-from qtl.transfer.plan import TransferPlan
+from qtl.transfer.plan import TransferPlan, _aligned
 from tests.helpers import tiny_config
 
 TASK = Task.from_config(OmegaConf.to_container(tiny_config("task.env.pole_mass=2.0").task, resolve=True))
@@ -173,3 +173,39 @@ def test_inconsistent_transfer_with_a_source_fails_before_any_work(finished_sour
     with pytest.raises(TransferError, match=message):
         run(tiny_config(f"transfer.source={finished_source}", *overrides), tmp_path)
     assert not any(tmp_path.iterdir())
+
+
+def test_theta_is_matched_to_the_models_outputs_by_state_dimension():
+    # θ_{i−1} of outputs (0, 1, 3); the model learns (0, 2, 3) (1 found constant, 2 newly varying): θ_{i−1}'s rows
+    # of 0 and 3, θ_p's row of 2.
+    previous = GPHyperparameters.from_natural(torch.arange(1.0, 13.0, dtype=torch.float64).reshape(3, 4))
+    learned = GPHyperparameters.from_natural(torch.full((3, 4), 100.0, dtype=torch.float64))
+    aligned = _aligned(previous, (0, 1, 3), learned, (0, 2, 3)).natural()
+    torch.testing.assert_close(aligned, torch.stack([previous.natural()[0], learned.natural()[1],
+                                                     previous.natural()[2]]), rtol=0, atol=0)
+    assert _aligned(previous, (0, 1, 3), learned, (0, 1, 3)) is previous
+
+
+def test_a_rule_updates_theta_of_the_outputs_the_model_learns(finished_source):
+    # The source's θ_s holds all four outputs; a target model that found output 2 constant learns (0, 1, 3).
+    rule = Forgetting(gamma=0.5)
+    transfer = TransferPlan({"source": str(finished_source)}, rule, TASK, FEATURES)
+    theta_s = transfer.source.theta
+    learned_3 = GPHyperparameters.from_natural(torch.ones(3, TASK.gp_input_dim + 2, dtype=torch.float64))
+    first = transfer.update(learned_3, 10, outputs=(0, 1, 3))
+    torch.testing.assert_close(first.natural(), theta_s.natural()[[0, 1, 3]], rtol=0, atol=0)
+    assert transfer.state_dict()["theta_outputs"] == [0, 1, 3]
+    # Next, every output varies again: output 2 starts from its θ_p, the others follow the rule from θ_{i−1}.
+    learned_4 = learned(2.0)
+    second = transfer.update(learned_4, 20, outputs=(0, 1, 2, 3))
+    assert second.num_outputs == 4
+    torch.testing.assert_close(second.natural()[2], learned_4.natural()[2], rtol=1e-12, atol=0)
+
+
+def test_a_checkpointed_theta_of_every_output_resumes_as_theta_of_the_modelled_outputs():
+    # A speed run checkpointed before its GP held only the modelled outputs stored θ of all four.
+    speed = TransferPlan({}, NoTransfer(), TASK, FEATURES, outputs=(1, 3))
+    full = learned(1.0)
+    speed.load_state_dict({"theta": full.state_dict(), "rule": {}, "fallen_back": False})
+    torch.testing.assert_close(speed.theta.natural(), full.natural()[[1, 3]], rtol=0, atol=0)
+    assert speed.theta_outputs == (1, 3)

@@ -86,3 +86,36 @@ def test_source_model_is_its_data_with_theta_s_unfitted(finished_source):
     assert isinstance(model, DynamicsGP)
     assert model.train_inputs[0].shape[-2] == len(source.dataset)
     torch.testing.assert_close(model.hyperparameters.natural(), source.theta.natural(), rtol=1e-12, atol=0)
+
+
+def test_a_source_of_other_modelled_outputs_is_refused_naming_the_integration(finished_source, tmp_path):
+    # The source (integration=delta) models all four outputs; a speed run on cart-pole models the velocities only.
+    source = SourceRun.load(finished_source)
+    assert source.outputs == (0, 1, 2, 3) and source.integration == "delta"
+    message = (r"models outputs \[0, 1, 2, 3\] \(integration=delta\), this run models \[1, 3\]: "
+               r"set propagation.integration=delta")
+    with pytest.raises(TransferError, match=message):
+        source.check_compatible(task_of(), (1, 3))
+    with pytest.raises(TransferError, match=message):  # through the loop: before any work
+        run(tiny_config(f"transfer.source={finished_source}", "approach=qtl_bayesian",
+                        "propagation.integration=speed"), tmp_path / "target")
+    assert not (tmp_path / "target").exists() or not any((tmp_path / "target").iterdir())
+
+
+def test_a_speed_source_stored_with_theta_of_every_output_gives_theta_s_of_its_modelled_outputs(
+        finished_source, tmp_path):
+    # A run made with integration=speed before its GP held only the modelled outputs stored θ of all D.
+    copy = tmp_path / "source"
+    shutil.copytree(finished_source, copy)
+    path = latest_checkpoint(copy)
+    checkpoint = load_checkpoint(path)
+    cfg = OmegaConf.create(checkpoint["config"])
+    cfg.propagation.integration = "speed"
+    checkpoint["config"] = OmegaConf.to_yaml(cfg)
+    torch.save(checkpoint, path)
+    source = SourceRun.load(copy)
+    full = SourceRun.load(finished_source).theta
+    assert source.outputs == (1, 3) and source.integration == "speed"
+    torch.testing.assert_close(source.theta.natural(), full.natural()[[1, 3]], rtol=0, atol=0)
+    model = source.model(AngleFeatures(4, source.task.angle_dims))
+    assert model.outputs == (1, 3) and model.train_y.shape[-1] == 2
