@@ -102,8 +102,8 @@ def stage_row(experiment: str, stage: str, cfg: DictConfig, task: dict[str, Any]
 def markdown(tasks: list[dict[str, Any]], rows: list[dict[str, Any]], info: dict[str, Any]) -> str:
     """The section of docs/benchmarks.md."""
     lines = [
-        "## The paper at full scale: what each sweep costs here (issue 23)"
-        + (f" ({info['tag']}: {' '.join(info['overrides'])})" if info.get("tag") else ""),
+        (f"## The paper at full scale, {info['tag']} (`{' '.join(info['overrides'])}`): what each sweep costs here"
+         if info.get("tag") else "## The paper at full scale: what each sweep costs here (issue 23)"),
         "",
         f"`{info['command']}` at commit {info['commit']} — {info['date']}, {info['machine']['cpu']} "
         f"({info['machine']['cores']} cores), {info['threads']} torch thread(s), torch {info['machine']['torch']}; "

@@ -3,7 +3,9 @@
 Each reference is one ``qtl-train`` run at a small budget on one torch thread (same seed, same kernels, same
 threads: the conditions under which a run is reproducible). ``record`` makes them under ``DIR`` (a source run
 first, for the transfer reference); ``compare`` reruns them under ``DIR2`` and says, per run, whether its
-``metrics.csv`` equals the recorded one byte for byte. Exit status 1 when any differs.
+``metrics.csv`` equals the recorded one byte for byte, or else whether every column the recorded file has is
+byte-identical in the new one (columns added since, e.g. a new metric, are named). Exit status 1 when any recorded
+column differs.
 
     python scripts/reference_runs.py record runs/reference/before
     python scripts/reference_runs.py compare runs/reference/before runs/reference/after
@@ -12,6 +14,7 @@ first, for the transfer reference); ``compare`` reruns them under ``DIR2`` and s
 from __future__ import annotations
 
 import argparse
+import csv
 import filecmp
 import subprocess
 import sys
@@ -54,11 +57,29 @@ def main() -> None:
     run_all(args.dirs[-1])
     if args.action == "compare":
         before, after = args.dirs
-        differ = [name for name in REFERENCES
-                  if not filecmp.cmp(before / name / "metrics.csv", after / name / "metrics.csv", shallow=False)]
-        for name in REFERENCES:
-            print(f"{name}: {'DIFFERS' if name in differ else 'byte-identical'} metrics.csv")
-        sys.exit(1 if differ else 0)
+        verdicts = {name: compare(before / name / "metrics.csv", after / name / "metrics.csv") for name in REFERENCES}
+        for name, verdict in verdicts.items():
+            print(f"{name}: {verdict}")
+        sys.exit(1 if any(v.startswith("DIFFERS") for v in verdicts.values()) else 0)
+
+
+def compare(recorded: Path, new: Path) -> str:
+    """Whether ``new`` equals ``recorded`` byte for byte, or keeps each of its columns byte for byte (and adds some)."""
+    if filecmp.cmp(recorded, new, shallow=False):
+        return "byte-identical metrics.csv"
+    with open(recorded, newline="") as f:
+        old_rows = list(csv.DictReader(f))
+    with open(new, newline="") as f:
+        new_rows = list(csv.DictReader(f))
+    old_columns, new_columns = list(old_rows[0]) if old_rows else [], list(new_rows[0]) if new_rows else []
+    missing = [c for c in old_columns if c not in new_columns]
+    kept = [c for c in old_columns if c not in missing]
+    changed = sorted({c for a, b in zip(old_rows, new_rows, strict=False) for c in kept if a[c] != b[c]})
+    if missing or changed or len(old_rows) != len(new_rows):
+        return (f"DIFFERS metrics.csv (rows {len(old_rows)} vs {len(new_rows)}; changed columns {changed}; "
+                f"missing columns {missing})")
+    added = [c for c in new_columns if c not in old_columns]
+    return f"every recorded column byte-identical; columns added: {', '.join(added)}"
 
 
 if __name__ == "__main__":

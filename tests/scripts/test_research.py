@@ -87,3 +87,16 @@ def test_value_probe_searches_on_the_transfer_runs_own_model(runs, tmp_path, app
     with open(target / "metrics.csv", newline="") as f:
         logged = float(list(csv.DictReader(f))[2]["predicted_return"])
     assert report["moment_matching"] == pytest.approx(logged, rel=1e-6)
+
+
+def test_kinematic_residual_measures_how_well_positions_follow_their_velocities(runs) -> None:
+    (source_dir,) = runs
+    rows = [line.split("|")[1:-1] for line in script("kinematic_residual.py", str(source_dir)).stdout.splitlines()
+            if line.startswith("|") and not line.startswith("|:") and "position" not in line]
+    assert [int(row[1]) for row in rows] == [0, 2]  # the cart-pole's x and θ
+    for row in rows:  # the trapezoid rule at the env's dt: the residual is far below the moves it predicts
+        median, largest, moves = float(row[5]), float(row[7]), float(row[8])
+        assert median < 0.1 * moves and largest >= median
+    coarse = [line for line in script("kinematic_residual.py", str(source_dir), "--weight", "0").stdout.splitlines()
+              if line.startswith("|") and "0.1" in line.split("|")[4]]
+    assert coarse and all(line.split("|")[5].strip() == "0" for line in coarse)  # explicit Euler, w = 0
