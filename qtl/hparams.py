@@ -21,7 +21,7 @@ from torch.utils.tensorboard import SummaryWriter
 
 from qtl.metrics import CONVERGED_FRACTION, FINAL_EPISODES, area_under_curve, final_performance, first_success
 from qtl.models import GPHyperparameters
-from qtl.recorder import THETA_P_PREFIX, THETA_PREFIX
+from qtl.recorder import SOURCE_COMPLIANCE_PREFIX, THETA_P_PREFIX, THETA_PREFIX
 from qtl.task import Task
 from qtl.transfer.plan import TransferPlan
 
@@ -54,6 +54,8 @@ CUSTOM_APPROACH = "custom"  # transfer keys set by hand, not by an approach pres
 # which the HParams table leaves blank).
 RULES_WITH_ZERO_GAMMA = ("none", "free")
 THETA_CATEGORY = "θ_i vs θ_p_i: {output}"
+TRANSFER_CATEGORY = "transfer"
+COMPLIANCE_CHART = "task compliance Λ_k per source"
 
 
 def outcomes(rows: Sequence[Mapping[str, Any]], timings: Sequence[Mapping[str, Any]] = ()) -> dict[str, float]:
@@ -157,12 +159,23 @@ def scalar_layout(num_outputs: int, input_dim: int,
     return layout
 
 
+def compliance_layout(num_sources: int) -> dict[str, dict[str, list[Any]]]:
+    """The custom scalar chart of a run with several sources: Λ_k of each source k (Eq. 14) over the episodes."""
+    tags = [f"^{re.escape(f'transfer/{SOURCE_COMPLIANCE_PREFIX}/{k}')}$" for k in range(num_sources)]
+    return {TRANSFER_CATEGORY: {COMPLIANCE_CHART: ["Multiline", tags]}}
+
+
 def start_dashboards(writer: SummaryWriter, cfg: DictConfig, task: Task, plan: TransferPlan) -> None:
     """What a fresh run writes once (a resume keeps it): HParams session, chart layout, config and plan text."""
     rule = plan.rule.name
     gamma = getattr(plan.rule, "gamma", 0.0 if rule in RULES_WITH_ZERO_GAMMA else None)
-    write_session(writer, run_hparams(cfg, approach_of(plan.source is not None, rule), rule, gamma))
-    writer.add_custom_scalars(scalar_layout(len(plan.outputs), task.gp_input_dim, plan.outputs))
+    hparams = run_hparams(cfg, approach_of(bool(plan.sources), rule), rule, gamma)
+    layout = scalar_layout(len(plan.outputs), task.gp_input_dim, plan.outputs)
+    if plan.several:  # the choice among several sources, and a chart of every Λ_k
+        hparams.update(sources=len(plan.sources), select=plan.select)
+        layout.update(compliance_layout(len(plan.sources)))
+    write_session(writer, hparams)
+    writer.add_custom_scalars(layout)
     write_run_text(writer, OmegaConf.to_yaml(cfg, resolve=True), plan.describe())
     writer.flush()
 

@@ -119,15 +119,15 @@ def run(cfg: DictConfig, output_dir: Path, *, resume: bool = False) -> RunResult
 
 
 def initial_episode(cfg: DictConfig, parts: Parts, state: RunState, env: gymnasium.Env) -> EpisodeResult:
-    """Line 3: interact with the environment: π(ψ_s) if transferred, else random actions.
+    """Line 3: interact with the environment: π(ψ_s) if transferred (or initial_policy's), else random actions.
 
     Also after ``cfg.random_episodes`` while early-ended episodes have left fewer tuples than a GP needs.
     """
     if state.episodes >= cfg.random_episodes:
         log.info("only %d transitions after %d episodes (they ended early): one more initial "
                     "episode before the first model", len(state.data), state.episodes)
-    if state.plan.transfer_policy:
-        actor, kind = parts.actor(state.policy), "source_policy"
+    if (acting := state.plan.initial_actor(state.policy)) is not None:  # ψ_s of a source (transfer.initial_policy)
+        actor, kind = parts.actor(acting), "source_policy"
     else:
         actor, kind = random_actor(parts.task, np.random.default_rng(state.stream(ACTION_STREAM))), "random"
     real = run_episode(env, parts.task, actor, state.stream(ENV_STREAM))
@@ -173,7 +173,7 @@ def learned_episode(cfg: DictConfig, parts: Parts, state: RunState, env: gymnasi
     row.update(kind="policy", predicted_return=predicted, model_smse=one_step_smse(model, real, parts.features,
                parts.dtype), model_log_evidence=log_evidence(model), policy_evaluations=found.evaluations,
                compliance=compliance, fallback=int(plan.fallen_back), **theta_row(state.theta, outputs=model.outputs),
-               **theta_row(theta_p, THETA_P_PREFIX, model.outputs))
+               **theta_row(theta_p, THETA_P_PREFIX, model.outputs), **plan.compliance_row())
     figure = video = None
     if cfg.figure_every > 0 and (state.episodes - cfg.random_episodes) % cfg.figure_every == 0:
         figure = prediction_figure(propagator, start, task.horizon, real, f"episode {state.episodes}: predicted vs "
@@ -209,7 +209,7 @@ def _open_recorder(cfg: DictConfig, output_dir: Path, task: Task, state: RunStat
     modelled = state.plan.outputs  # θ's columns name the state dimensions the GP models
     columns = (BASE_COLUMNS + theta_columns(len(modelled), task.gp_input_dim, outputs=modelled)
                + theta_columns(len(modelled), task.gp_input_dim, THETA_P_PREFIX, modelled)
-               + (start_columns(task.state_dim) if task.start_estimated else []))
+               + (start_columns(task.state_dim) if task.start_estimated else []) + state.plan.compliance_columns())
     if state.episodes < total:
         log.info("%s", state.plan.describe())
         log.info("kernels: %s; exp sums %s, moments %s", engine.describe(), engine.exp_sums, engine.moments)

@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import csv
+import math
 import os
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -62,6 +63,7 @@ class Curve:
     returns: list[float]
     successes: list[bool]
     compliance: list[float]  # NaN where not computed
+    selected_source: list[float] = field(default_factory=list)  # k of the chosen source, several sources; else NaN
 
     @classmethod
     def read(cls, run_dir: str | os.PathLike, episodes: int | None = None) -> Curve:
@@ -76,7 +78,13 @@ class Curve:
             returns=[float(r["return"]) for r in rows],
             successes=[bool(int(r["success"])) for r in rows],
             compliance=[float(r.get("compliance") or "nan") for r in rows],
+            selected_source=[float(r.get("selected_source") or "nan") for r in rows],
         )
+
+    def chosen_source(self) -> int | None:
+        """k of the source a run of several sources chose (its last episode's); None for other runs."""
+        chosen = [k for k in self.selected_source if not math.isnan(k)]
+        return int(chosen[-1]) if chosen else None
 
     def summary(self) -> dict[str, float | int | None]:
         """Final performance, AUC, time to convergence and first success of this curve."""

@@ -27,6 +27,8 @@ METRICS_FILE = "metrics.csv"  # the one spelling: qtl.metrics, qtl.report and th
 THETA_PREFIX = "theta"  # θ_i, what the episode's model used
 THETA_P_PREFIX = "theta_p"  # θ_p_i, what evidence maximisation found
 START_PREFIX = "start"  # μ_0, σ_0 estimated from the episodes' initial states (tasks with no start distribution)
+SOURCE_COMPLIANCE_PREFIX = "compliance"  # Λ_k of source k (Eq. 14), runs with several sources only
+SELECTED_SOURCE = "selected_source"  # k of the source θ_s and ψ_s are taken from, runs with several sources only
 # Wall times differ between identical runs, so they live apart from metrics.csv (which same seed
 # reproduces exactly).
 TIMINGS_FILE = "timings.csv"
@@ -170,6 +172,9 @@ class RunRecorder:
         }
         tags.update({k: v for k, v in row.items()
                      if k.startswith((f"{THETA_PREFIX}/", f"{THETA_P_PREFIX}/", f"{START_PREFIX}/"))})
+        tags.update({f"transfer/{k}": v for k, v in row.items() if k.startswith(f"{SOURCE_COMPLIANCE_PREFIX}/")})
+        if SELECTED_SOURCE in row:
+            tags[f"transfer/{SELECTED_SOURCE}"] = row[SELECTED_SOURCE]
         tags.update({f"health/{event}": health[event] for event in EVENTS})
         for tag, value in tags.items():
             if value is not None and value != "" and math.isfinite(float(value)):

@@ -24,6 +24,7 @@ from qtl.hparams import (
     OUTCOMES,
     PLAN_TAG,
     approach_of,
+    compliance_layout,
     outcomes,
     run_hparams,
     scalar_layout,
@@ -141,3 +142,9 @@ def test_a_run_and_its_resume_leave_one_hparams_session_with_the_final_outcomes(
     assert {name: getattr(value, value.WhichOneof("kind")) for name, value in group.hparams.items()} == hparams
     shown = {m.name.tag: m.value for m in group.metric_values}
     assert shown == pytest.approx(expected, rel=1e-6, nan_ok=True)
+
+
+def test_compliance_layout_charts_every_sources_compliance():
+    layout = compliance_layout(3)
+    kind, patterns = layout["transfer"]["task compliance Λ_k per source"]
+    assert kind == "Multiline" and patterns == [f"^transfer/compliance/{k}$" for k in range(3)]

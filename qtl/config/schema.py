@@ -219,8 +219,19 @@ class ModelConfig:
 class TransferConfig:
     """Transfer from a source run (Algorithm 1): what is transferred and the compliance gate."""
 
-    source: Optional[str] = field(  # noqa: UP045
-        default=None, metadata=doc("a finished run directory of the source task"),
+    # Any: a structured config cannot type str | list[str]; check_transfer refuses anything else before any work.
+    source: Any = field(
+        default=None, metadata=doc("a finished run directory of the source task; a list of them, or a directory "
+                                   "whose subfolders are such runs (several sources, chosen by compliance)"),
+    )
+    select: str = field(
+        default="compliance",
+        metadata=doc("compliance | mixture: with several sources, θ_s and ψ_s of the most compliant one (Eq. 14), or "
+                     "θ_s the Λ-weighted mean of the sources' log θ_s (ψ_s still the most compliant one's)"),
+    )
+    initial_policy: Optional[str] = field(  # noqa: UP045
+        default=None, metadata=doc("with several sources, the source run whose ψ_s acts in the initial episodes (one "
+                                   "of the sources; null: random actions)"),
     )
     hyperparameters: bool = field(
         default=True, metadata=doc("θ_0 = θ_s, then the rule (rule=free|forgetting|bayesian)"),

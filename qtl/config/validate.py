@@ -33,6 +33,7 @@ from qtl.task import (
     env_kwargs,
 )
 from qtl.transfer.compliance import BANDWIDTHS, COMPLIANCES, DEFAULT_COMPLIANCE
+from qtl.transfer.plan import SELECT_MODES
 from qtl.transfer.rules import HyperparameterRule
 
 FLATTEN_HINT = (
@@ -108,7 +109,15 @@ def check_transfer(cfg: Mapping[str, Any], rule: HyperparameterRule) -> None:
     """
     transfer_theta = bool(cfg.get("hyperparameters", True))
     min_compliance, temperature = cfg.get("min_compliance"), cfg.get("compliance_temperature")
+    _check_source_value(cfg.get("source"))
+    select, initial_policy = str(cfg.get("select") or "compliance"), cfg.get("initial_policy")
+    if select not in SELECT_MODES:
+        raise TransferError(f"transfer.select must be one of {', '.join(SELECT_MODES)}, got {select!r}")
+    if initial_policy is not None and (not isinstance(initial_policy, str) or not initial_policy):
+        raise TransferError(f"transfer.initial_policy must be a source run directory, got {initial_policy!r}")
     if cfg.get("source") is None:
+        if initial_policy is not None:
+            raise TransferError("transfer.initial_policy names one of the sources: give transfer.source=<run dir(s)>")
         if rule.uses_source:
             raise TransferError(f"rule={rule.name} starts from the source's θ_s: give transfer.source=<run dir>")
         if bool(cfg.get("policy", False)):
@@ -138,6 +147,22 @@ def check_transfer(cfg: Mapping[str, Any], rule: HyperparameterRule) -> None:
     if name == "kernel" and temperature is not None:
         raise TransferError("transfer.compliance_temperature tempers the likelihood ratio only: unset it, or set "
                             "transfer.compliance=likelihood_ratio")
+
+
+def _check_source_value(source: Any) -> None:
+    """``transfer.source`` is null, a directory, or a non-empty list of distinct directories: a TransferError else."""
+    if source is None or (isinstance(source, str) and source):
+        return
+    if isinstance(source, Sequence) and not isinstance(source, str):
+        if not source:
+            raise TransferError("transfer.source=[] names no source run: give one run directory or several")
+        if bad := [s for s in source if not isinstance(s, str) or not s]:
+            raise TransferError(f"transfer.source: every entry must be a run directory, got {bad[0]!r}")
+        if len(set(source)) != len(source):
+            raise TransferError(f"transfer.source names a run twice: {list(source)}")
+        return
+    raise TransferError(f"transfer.source must be a run directory, a list of them or a directory holding them, "
+                        f"got {source!r}")
 
 
 # -- the task -------------------------------------------------------------------------------------------

@@ -115,6 +115,10 @@ def _found_markdown(experiment: Experiment) -> str:
             if cell.truncated:
                 runs = ", ".join(f"{SEED_PREFIX}{s}: {n}" for s, n in sorted(cell.lengths.items()))
                 note = f"runs differ in length ({runs}): the common first {cell.episodes} episodes are used"
+            chosen = {s: cell.curves[s].chosen_source() for s in cell.seeds}
+            if any(k is not None for k in chosen.values()):  # runs of several sources: the one each chose
+                picks = ", ".join(f"{SEED_PREFIX}{s}: {'-' if k is None else k}" for s, k in chosen.items())
+                note = "; ".join(n for n in (note, f"source chosen by compliance ({picks})") if n)
             rows.append([f"{approach_name(approach)} / {label}", ", ".join(map(str, cell.seeds)), str(cell.episodes),
                          note])
     table = pd.DataFrame(rows, columns=["Approach / target", "Seeds", "Episodes", "Note"])

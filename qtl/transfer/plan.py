@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import logging
 import math
 from collections.abc import Mapping, Sequence
@@ -13,22 +14,32 @@ from torch import nn
 from qtl.errors import TransferError
 from qtl.features import AngleFeatures
 from qtl.models import DynamicsGP, GPHyperparameters
+from qtl.recorder import SELECTED_SOURCE, SOURCE_COMPLIANCE_PREFIX
 from qtl.task import Task
 from qtl.transfer.compliance import DEFAULT_COMPLIANCE, compliance_value
 from qtl.transfer.rules import HyperparameterRule
-from qtl.transfer.source import SourceRun
+from qtl.transfer.source import SourceRun, source_dirs
 
 log = logging.getLogger(__name__)
+
+# transfer.select with several sources: θ_s (and ψ_s) of the most compliant source, or θ_s the Λ-weighted mean of
+# the sources' log θ_s (ψ_s still the most compliant one's).
+SELECT_MODES = ("compliance", "mixture")
 
 
 class TransferPlan:
     """The transfer settings of a run, checked, and the state of its θ across episodes.
 
     Built from the ``transfer`` config node, checked first by :func:`qtl.config.validate.check_transfer`, and
-    the instantiated ``rule``; the source run is loaded here and must match the task (a
+    the instantiated ``rule``; the source runs are loaded here and must match the task (a
     :class:`TransferError` before any episode runs otherwise). Without a source it is PILCO's plan:
     θ_i = θ_p_i, ψ_0 random. ``outputs``: the state dimensions the run's GP models (default: all); θ and the
     source's θ_s are per modelled output, and the source must model the same ones.
+
+    With several sources (``transfer.source`` a list, or a directory of runs) the initial episodes act randomly
+    (or by ``transfer.initial_policy``'s ψ_s); at the first model Λ_k (Eq. 14) of every source k chooses
+    ``source``, by ``transfer.select``; from then on the plan is the single-source one with that source's ψ_s and
+    θ_s (or the mixture's θ_s). Λ_k is computed at every model.
     """
 
     def __init__(
@@ -51,14 +62,34 @@ class TransferPlan:
         self.resolution = float(cfg.get("compliance_resolution") or 0.0)
         self.compliance_name = str(cfg.get("compliance") or DEFAULT_COMPLIANCE)
         self.bandwidth = str(cfg.get("compliance_bandwidth") or "scott")
-        source_dir = cfg.get("source")
-        if source_dir is None:
-            self.source, self.transfer_theta = None, False
-        else:
-            self.source = SourceRun.load(source_dir)
-            self.source.check_compatible(task, self.outputs)
+        self.select = str(cfg.get("select") or "compliance")
+        source = cfg.get("source")
+        dirs = [] if source is None else source_dirs(source if isinstance(source, str) else list(source))
+        initial = cfg.get("initial_policy")
+        initial_dir = None if initial is None else source_dirs(str(initial))[0]
+        if initial_dir is not None and initial_dir not in dirs:
+            raise TransferError(f"transfer.initial_policy={str(initial_dir)!r} is not one of the sources "
+                                f"{[str(d) for d in dirs]}")
+        self.sources = [SourceRun.load(d) for d in dirs]  # every source checked before any work
+        for run in self.sources:
+            run.check_compatible(task, self.outputs)
+        if self.select == "mixture" and len({run.theta_outputs for run in self.sources}) > 1:
+            held = [list(run.theta_outputs) for run in self.sources]
+            raise TransferError("transfer.select=mixture averages θ_s over the sources: theirs hold different outputs "
+                                f"({held}); use transfer.select=compliance")
+        # The source θ_s and ψ_s come from: the only one, or (several) the one chosen at the first model.
+        self.source = self.sources[0] if len(self.sources) == 1 else None
+        self.transfer_theta = self.transfer_theta and bool(self.sources)
+        self.theta_s = None if self.source is None else self.source.theta  # θ_s: the source's, or the mixture's
+        self.theta_s_outputs = self.outputs if self.source is None else self.source.theta_outputs
+        # The source whose ψ_s acts in the initial episodes: initial_policy's, or the only source's under policy=true.
+        self.initial_source = (self.sources[dirs.index(initial_dir)] if initial_dir is not None
+                               else self.source if self.transfer_policy else None)
+        self.compliances: list[float] = []  # Λ_k of every source at the last model (several sources)
+        self.selected: int | None = 0 if self.source is not None else None  # k of the source chosen
+        self._chosen_compliances: list[float] = []  # Λ_k the choice was made by (several sources)
         self.device = torch.device(device)
-        self._source_model = None if self.source is None else self.source.model(features, dtype, device)
+        self._source_models = [run.model(features, dtype, device) for run in self.sources]
         self.theta: GPHyperparameters | None = None  # θ_{i−1}: what the previous model used
         self.theta_outputs = self.outputs  # the state dimensions of θ_{i−1}'s rows
         self.fallen_back = False  # the compliance gate switched this run to PILCO
@@ -66,30 +97,92 @@ class TransferPlan:
 
     # -- line 1: ψ ----------------------------------------------------------------------------
 
+    @property
+    def several(self) -> bool:
+        """Whether the run has several sources, one to be chosen at the first model."""
+        return len(self.sources) > 1
+
     def initial_policy(self, policy: nn.Module) -> None:
-        """ψ_0 = ψ_s when the policy is transferred (Algorithm 1, line 1); else PILCO's ψ_0 (kept for the gate)."""
-        if self.transfer_policy and self.source is not None:
-            self.source.check_policy(policy)
+        """ψ_0 = ψ_s when the policy is transferred (Algorithm 1, line 1); else PILCO's ψ_0 (kept for the gate).
+
+        With several sources ψ_0 stays PILCO's until the first model chooses one; every ψ_s is checked now.
+        """
+        acting = self.sources if self.transfer_policy else [r for r in (self.initial_source,) if r is not None]
+        for run in acting:
+            run.check_policy(policy)
+        if self.transfer_policy and self.sources:
             self._pilco_psi = {k: v.detach().clone() for k, v in policy.state_dict().items()}
-            policy.load_state_dict(self.source.policy)
+            if self.source is not None:
+                policy.load_state_dict(self.source.policy)
+
+    def initial_actor(self, policy: nn.Module) -> nn.Module | None:
+        """What acts in the initial episodes (line 3): ``policy`` holding ψ_s, a source's ψ_s, or None (random)."""
+        if self.initial_source is None:
+            return None
+        if self.initial_source is self.source and self.transfer_policy:
+            return policy  # ψ_0 = ψ_s already
+        acting = copy.deepcopy(policy)
+        acting.load_state_dict(self.initial_source.policy)
+        return acting
 
     # -- lines 2, 12, 13: θ -----------------------------------------------------------------
 
     def fit_start(self) -> GPHyperparameters | None:
         """Where evidence maximisation starts: θ_s for the free rule (of every modelled output), else the heuristic."""
-        if self.rule.warm_start and self.source is not None and not self.fallen_back:
-            if self.source.theta_outputs == self.outputs:
-                return self.source.theta
+        if self.rule.warm_start and self.theta_s is not None and not self.fallen_back:
+            if self.theta_s_outputs == self.outputs:
+                return self.theta_s
             log.info("θ_s holds outputs %s of the modelled %s (the source modelled the others as deterministic): the "
-                     "fit starts from the heuristic", list(self.source.theta_outputs), list(self.outputs))
+                     "fit starts from the heuristic", list(self.theta_s_outputs), list(self.outputs))
         return None
 
     def compliance(self, target: DynamicsGP) -> float:
-        """Task compliance Λ (Eq. 14) of the target model's tuples; NaN without a source."""
-        if self._source_model is None:
+        """Task compliance Λ (Eq. 14) of the target model's tuples; NaN without a source.
+
+        With several sources: Λ_k of each (:attr:`compliances`), the source chosen at the first call
+        (:meth:`choose`), and Λ of the chosen one returned.
+        """
+        if not self.sources:
             return math.nan
-        return compliance_value(self.compliance_name, self._source_model, target, bandwidth=self.bandwidth,
-                                temperature=self.temperature, resolution=self.resolution)
+        self.compliances = [
+            compliance_value(self.compliance_name, model, target, bandwidth=self.bandwidth,
+                             temperature=self.temperature, resolution=self.resolution)
+            for model in self._source_models]
+        if self.selected is None:
+            self.choose(self.compliances)
+        return self.compliances[self.selected]
+
+    def choose(self, compliances: Sequence[float]) -> int:
+        """Choose the source of θ_s and ψ_s by its Λ_k (Eq. 14, `K`): the most compliant (the first of ties); its k.
+
+        ``select=mixture``: θ_s is the Λ-weighted mean of the sources' log θ_s (:func:`mixture_theta`).
+        """
+        values = [float(c) for c in compliances]
+        best = max(range(len(values)), key=lambda k: -math.inf if math.isnan(values[k]) else values[k])
+        self.selected, self.source = best, self.sources[best]
+        self.theta_s_outputs = self.source.theta_outputs
+        if self.select == "mixture":
+            self.theta_s = mixture_theta([run.theta for run in self.sources], values)
+        else:
+            self.theta_s = self.source.theta
+        self._chosen_compliances = values
+        log.info("task compliance per source %s: %s chosen (select=%s)",
+                 ", ".join(f"{k}: {v:.4f}" for k, v in enumerate(values)), self.source.path, self.select)
+        return best
+
+    def compliance_columns(self) -> list[str]:
+        """The ``metrics.csv`` columns of Λ_k per source and the chosen k: none with a single source."""
+        if not self.several:
+            return []
+        return [f"{SOURCE_COMPLIANCE_PREFIX}/{k}" for k in range(len(self.sources))] + [SELECTED_SOURCE]
+
+    def compliance_row(self) -> dict[str, float]:
+        """Λ_k of the last model and the chosen k as ``{column: value}`` (:meth:`compliance_columns`)."""
+        if not self.several or not self.compliances:
+            return {}
+        row: dict[str, float] = {f"{SOURCE_COMPLIANCE_PREFIX}/{k}": v for k, v in enumerate(self.compliances)}
+        row[SELECTED_SOURCE] = self.selected
+        return row
 
     def update(
         self, learned: GPHyperparameters, num_tuples: int, compliance: float = math.nan,
@@ -117,13 +210,16 @@ class TransferPlan:
                 if not self._pilco_psi:
                     raise TransferError("the gate cannot restore PILCO's ψ_0: call initial_policy(policy) first")
                 policy.load_state_dict(self._pilco_psi)
+        if (self.theta is None and self.several and self.transfer_policy and not self.fallen_back
+                and policy is not None and self.source is not None):
+            policy.load_state_dict(self.source.policy)  # ψ_0 = ψ_s of the source chosen at this first model
         outputs = self.outputs if outputs is None else tuple(int(d) for d in outputs)
         if not self.transfer_theta or self.fallen_back:
             self.theta, self.theta_outputs = learned, outputs
             return learned
         if self.theta is None:
-            theta_s = self.source.theta.to(dtype=learned.lengthscales.dtype, device=self.device)
-            self.theta = self.rule.start(_aligned(theta_s, self.source.theta_outputs, learned, outputs))
+            theta_s = self.theta_s.to(dtype=learned.lengthscales.dtype, device=self.device)
+            self.theta = self.rule.start(_aligned(theta_s, self.theta_s_outputs, learned, outputs))
         else:
             self.theta = self.rule.update(_aligned(self.theta, self.theta_outputs, learned, outputs), learned,
                                           num_tuples)
@@ -134,12 +230,15 @@ class TransferPlan:
 
     def state_dict(self) -> dict[str, Any]:
         """θ_{i−1}, the rule's state and the gate's, for a checkpoint."""
-        return {
+        state = {
             "theta": None if self.theta is None else self.theta.state_dict(),
             "theta_outputs": list(self.theta_outputs),
             "rule": self.rule.state_dict(),
             "fallen_back": self.fallen_back,
         }
+        if self.several and self.selected is not None:
+            state["chosen_by"] = list(self._chosen_compliances)  # Λ_k at the first model: the choice, and its θ_s
+        return state
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
         """Restore :meth:`state_dict`."""
@@ -147,6 +246,8 @@ class TransferPlan:
         self.theta_outputs = tuple(int(d) for d in state.get("theta_outputs", self.outputs))
         self.rule.load_state_dict(state["rule"])
         self.fallen_back = bool(state["fallen_back"])
+        if self.several and state.get("chosen_by") is not None:
+            self.choose(state["chosen_by"])
 
     def _modelled(self, theta: GPHyperparameters) -> GPHyperparameters:
         """``theta`` on the plan's device, cut to the modelled outputs if it holds all D (stored before issue 63)."""
@@ -156,11 +257,28 @@ class TransferPlan:
 
     def describe(self) -> str:
         """What is transferred from where, one line."""
-        if self.source is None:
+        if not self.sources:
             return "no transfer (PILCO)"
         what = [w for w, on in (("θ_s", self.transfer_theta), ("ψ_s", self.transfer_policy)) if on] or ["nothing"]
+        if self.several:
+            listed = "; ".join(f"{k}: {run.path} (episode {run.episode}, task {run.task.name})"
+                               for k, run in enumerate(self.sources))
+            acting = "random actions" if self.initial_source is None else f"ψ_s of {self.initial_source.path}"
+            return (f"transfer of {' and '.join(what)} from one of {len(self.sources)} sources, chosen by task "
+                    f"compliance at the first model (select={self.select}): {listed}; initial episodes: {acting}; "
+                    f"rule {self.rule.describe()}")
         return (f"transfer of {' and '.join(what)} from {self.source.path} (episode {self.source.episode}, "
                 f"task {self.source.task.name}); rule {self.rule.describe()}")
+
+
+def mixture_theta(thetas: Sequence[GPHyperparameters], compliances: Sequence[float]) -> GPHyperparameters:
+    """θ_s = exp(Σ_k w_k log θ_k), w_k = Λ_k / Σ_j Λ_j (equal where every Λ_k is 0): each θ_k `E x (D + 2)`."""
+    logs = torch.stack([theta.log() for theta in thetas])  # K x E x (D + 2)
+    weights = torch.tensor([max(float(c), 0.0) if math.isfinite(float(c)) else 0.0 for c in compliances],
+                           dtype=logs.dtype)  # K
+    total = weights.sum()
+    weights = weights / total if total > 0 else torch.full_like(weights, 1.0 / len(thetas))
+    return GPHyperparameters.from_natural((weights[:, None, None] * logs).sum(0).exp())
 
 
 def _aligned(

@@ -11,7 +11,7 @@ import torch
 from omegaconf import OmegaConf
 from torch import Tensor
 
-from qtl.checkpoint import run_checkpoint
+from qtl.checkpoint import CHECKPOINT_DIR, run_checkpoint
 from qtl.data import TransitionDataset, gp_training_pairs
 from qtl.errors import CheckpointError, TaskError, TransferError
 from qtl.features import AngleFeatures
@@ -170,3 +170,19 @@ def _stored_theta(checkpoint: dict) -> GPHyperparameters | None:
     if not learned:
         return None
     return GPHyperparameters.from_dict(learned[-1], prefix="theta/")  # the θ_i columns (qtl.recorder.THETA_PREFIX)
+
+
+def source_dirs(source: str | os.PathLike | Sequence[str | os.PathLike]) -> list[Path]:
+    """The run directories ``transfer.source`` names: a list of them, one run, or a directory whose subfolders are runs.
+
+    A directory with its own checkpoints is one run; one without them but with subfolders that have some is a library
+    of runs (those subfolders, by name); anything else is returned as it is, for :meth:`SourceRun.load` to refuse.
+    """
+    if isinstance(source, str | os.PathLike):
+        path = Path(source).expanduser().resolve()
+        if not (path / CHECKPOINT_DIR).is_dir() and path.is_dir():
+            runs = sorted(p for p in path.iterdir() if (p / CHECKPOINT_DIR).is_dir())
+            if runs:
+                return runs
+        return [path]
+    return [Path(p).expanduser().resolve() for p in source]

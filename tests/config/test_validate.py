@@ -31,3 +31,24 @@ def test_transfer_checks_read_no_source_run(tmp_path):
 def test_bad_compliance_settings_are_one_line(transfer, message):
     with pytest.raises(TransferError, match=message):
         check_transfer(transfer, NoTransfer())
+
+
+@pytest.mark.parametrize(
+    ("transfer", "message"),
+    [
+        ({"source": []}, r"transfer.source=\[\] names no source run"),
+        ({"source": ["runs/a", 3]}, "every entry must be a run directory, got 3"),
+        ({"source": ["runs/a", "runs/a"]}, "names a run twice"),
+        ({"source": 5}, "a run directory, a list of them or a directory holding them, got 5"),
+        ({"source": ["runs/a", "runs/b"], "select": "vote"}, "transfer.select must be one of compliance, mixture"),
+        ({"initial_policy": "runs/a", "hyperparameters": False}, "transfer.initial_policy names one of the sources"),
+    ],
+)
+def test_bad_source_lists_and_select_are_one_line(transfer, message):
+    with pytest.raises(TransferError, match=message):
+        check_transfer({"hyperparameters": False, **transfer}, NoTransfer())
+
+
+def test_a_list_of_sources_passes_the_checks_without_reading_them(tmp_path):
+    missing = [str(tmp_path / "a"), str(tmp_path / "b")]
+    check_transfer({"source": missing, "select": "mixture", "initial_policy": missing[1]}, Bayesian())

@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import math
+import shutil
 import subprocess
 import sys
 
 import pytest
 
-from tests.report.fakes import CARTPOLE, make_experiment, table_rows
+from qtl.report import write_report
+from tests.report.fakes import CARTPOLE, NAN, make_experiment, table_rows, write_run
 
 
 def test_tables_json_holds_the_hand_computed_numbers(cartpole):
@@ -101,3 +103,13 @@ def test_cli_refuses_an_unreadable_final_policies_file_in_one_line_writing_nothi
     assert done.returncode == 1 and done.stdout == "" and done.stderr.startswith("qtl-report: ")
     assert done.stderr.count("\n") == 1 and "is not what qtl-evaluate writes" in done.stderr
     assert not (root / "report").exists()
+
+
+def test_the_report_names_the_source_each_run_of_several_sources_chose(tmp_path):
+    runs = {"qtl_bayesian": {"m0.6": {0: ([10, 20, 30], [NAN, 0.9, 0.9]), 1: ([10, 20, 30], [NAN, 0.8, 0.8])}}}
+    root = make_experiment(tmp_path / "exp", runs)
+    several = tmp_path / "several"  # seed 0 chose source k = 1 of several; seed 1 had one source
+    write_run(several, [10, 20, 30], [NAN, 0.9, 0.9], extra={"selected_source": [NAN, 1.0, 1.0]})
+    shutil.copy(several / "metrics.csv", root / "target" / "qtl_bayesian" / "m0.6" / "seed_0" / "metrics.csv")
+    text = write_report(root).read_text()
+    assert "source chosen by compliance (seed_0: 1, seed_1: -)" in text

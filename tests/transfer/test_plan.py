@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import csv
 import math
 
 import pytest
@@ -209,3 +210,150 @@ def test_a_checkpointed_theta_of_every_output_resumes_as_theta_of_the_modelled_o
     speed.load_state_dict({"theta": full.state_dict(), "rule": {}, "fallen_back": False})
     torch.testing.assert_close(speed.theta.natural(), full.natural()[[1, 3]], rtol=0, atol=0)
     assert speed.theta_outputs == (1, 3)
+
+
+# -- several sources: Λ_k of each at the first model chooses θ_s and ψ_s ------------------------------------
+
+
+def library_plan(source_library, rule=None, **transfer) -> TransferPlan:
+    """A plan over the library's two sources (k = 0: 0.5 kg, k = 1: 3 kg), given as the directory that holds them."""
+    return plan(Bayesian() if rule is None else rule, source=str(source_library), **transfer)
+
+
+def test_each_source_gets_its_compliance_and_the_most_compliant_is_chosen(source_library):
+    several = library_plan(source_library)
+    light, heavy = (SourceRun.load(source_library / name) for name in ("m0.5", "m3.0"))
+    assert several.several and several.source is None and several.selected is None
+    assert [run.path for run in several.sources] == [light.path, heavy.path]
+    assert several.fit_start() is None and several.compliance_columns() == [
+        "compliance/0", "compliance/1", "selected_source"]
+    target = heavy.model(FEATURES)  # the 3 kg source's own tuples as the target's: it explains them best
+    want = [kernel_compliance(run.model(FEATURES), target).value for run in (light, heavy)]
+    assert want[1] > want[0]
+    assert several.compliance(target) == pytest.approx(want[1], rel=1e-12)  # Λ of the chosen source
+    assert several.compliances == pytest.approx(want, rel=1e-12) and several.selected == 1
+    assert several.source.path == heavy.path
+    assert several.compliance_row() == {"compliance/0": several.compliances[0],
+                                        "compliance/1": several.compliances[1], "selected_source": 1}
+    first = several.update(learned(0.5), 8, several.compliances[1])
+    torch.testing.assert_close(first.natural(), heavy.theta.natural(), rtol=0, atol=0)  # θ_0 = θ_s of the chosen
+    # Later models recompute every Λ_k; the choice stays.
+    several.compliance(light.model(FEATURES))
+    assert several.compliances[0] > several.compliances[1] and several.selected == 1
+
+
+def test_mixture_theta_s_is_the_compliance_weighted_mean_of_log_theta_s(source_library):
+    mixture = library_plan(source_library, rule=Free(), select="mixture")
+    light, heavy = (SourceRun.load(source_library / name) for name in ("m0.5", "m3.0"))
+    mixture.choose([0.2, 0.6])
+    w = (0.2 / 0.8, 0.6 / 0.8)
+    by_hand = torch.exp(w[0] * light.theta.natural().log() + w[1] * heavy.theta.natural().log())
+    torch.testing.assert_close(mixture.fit_start().natural(), by_hand, rtol=1e-12, atol=0)
+    assert mixture.source.path == heavy.path  # ψ_s of the most compliant
+    first = mixture.update(learned(0.5), 8, 0.6)
+    torch.testing.assert_close(first.natural(), by_hand, rtol=1e-12, atol=0)
+    # Every Λ_k 0: equal weights.
+    even = library_plan(source_library, select="mixture")
+    even.choose([0.0, 0.0])
+    torch.testing.assert_close(even.theta_s.natural(), torch.sqrt(light.theta.natural() * heavy.theta.natural()),
+                               rtol=1e-12, atol=0)
+
+
+def test_min_compliance_reads_the_best_source(source_library):
+    gated = library_plan(source_library, min_compliance=0.5)
+    gated.choose([0.3, 0.4])
+    theta_p = learned(0.7)
+    assert gated.update(theta_p, 8, compliance=0.4) is theta_p and gated.fallen_back
+    kept = library_plan(source_library, min_compliance=0.5)
+    kept.choose([0.6, 0.4])
+    assert kept.update(learned(0.7), 8, compliance=0.6) is not None and not kept.fallen_back
+    assert kept.source.path.name == "m0.5"
+
+
+def test_psi_s_of_the_chosen_source_once_chosen_and_random_initial_episodes(source_library):
+    several = library_plan(source_library, policy=True)
+    made = made_policy()
+    pilco_psi = {k: v.clone() for k, v in made.state_dict().items()}
+    several.initial_policy(made)
+    assert several.initial_actor(made) is None  # random actions before the choice
+    assert all(torch.equal(made.state_dict()[k], v) for k, v in pilco_psi.items())  # PILCO's ψ_0 until then
+    several.choose([0.2, 0.9])
+    several.update(learned(0.5), 8, 0.9, made)
+    for name, value in several.sources[1].policy.items():
+        assert torch.equal(made.state_dict()[name], value)
+
+
+def test_initial_policy_acts_with_the_named_sources_psi_s(source_library):
+    named = library_plan(source_library, initial_policy=str(source_library / "m3.0"))
+    made = made_policy()
+    named.initial_policy(made)
+    acting = named.initial_actor(made)
+    assert acting is not made and "initial episodes: ψ_s of" in named.describe()
+    for name, value in named.sources[1].policy.items():
+        assert torch.equal(acting.state_dict()[name], value)
+
+
+def test_the_choice_is_checkpointed(source_library):
+    mixture = library_plan(source_library, select="mixture")
+    mixture.choose([0.7, 0.1])
+    mixture.update(learned(0.5), 8, 0.7)
+    restored = library_plan(source_library, select="mixture")
+    restored.load_state_dict(mixture.state_dict())
+    assert restored.selected == 0
+    torch.testing.assert_close(restored.theta_s.natural(), mixture.theta_s.natural(), rtol=0, atol=0)
+
+
+def test_one_source_in_a_list_is_the_single_source_plan(finished_source):
+    listed = plan(Bayesian(), source=[str(finished_source)])
+    single = plan(Bayesian(), source=str(finished_source))
+    assert not listed.several and listed.selected == 0 and listed.describe() == single.describe()
+    assert listed.compliance_columns() == [] and listed.state_dict().keys() == single.state_dict().keys()
+    target = single.source.model(FEATURES)
+    assert listed.compliance(target) == single.compliance(target) and listed.compliance_row() == {}
+
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        (["transfer.source=[{light},{missing}]"], "is not a usable source run"),
+        (["transfer.source=[{light},{mountaincar}]"], "transfer only works within one family"),
+        (["transfer.source={library}", "transfer.initial_policy={missing}"], "is not one of the sources"),
+    ],
+)
+def test_a_bad_source_among_several_fails_before_any_work(source_library, mountaincar_source, tmp_path, overrides,
+                                                          message):
+    paths = {"light": source_library / "m0.5", "missing": tmp_path / "missing", "library": source_library,
+             "mountaincar": mountaincar_source}
+    run_dir = tmp_path / "run"
+    with pytest.raises(TransferError, match=message):
+        run(tiny_config("approach=qtl_bayesian", *(o.format(**paths) for o in overrides)), run_dir)
+    assert not run_dir.exists()
+
+
+@pytest.mark.parametrize(
+    "overrides",
+    [
+        ["rule=none", "transfer.hyperparameters=false", "transfer.policy=true"],
+        ["rule=free"],
+        ["rule=forgetting", "rule.gamma=0.5"],
+        ["approach=qtl_bayesian", "transfer.select=mixture"],
+    ],
+)
+def test_several_sources_run_with_every_rule(source_library, tmp_path, overrides):
+    run(tiny_config("episodes=1", "task.env.pole_mass=0.6", f"transfer.source={source_library}", *overrides),
+        tmp_path)
+    with open(tmp_path / "metrics.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert [r["kind"] for r in rows] == ["random", "policy"]
+    assert rows[1]["selected_source"] == "0" and float(rows[1]["compliance/0"]) > float(rows[1]["compliance/1"])
+    assert rows[1]["compliance"] == rows[1]["compliance/0"]
+
+
+def test_a_resumed_run_of_several_sources_keeps_its_choice(source_library, tmp_path):
+    args = ("task.env.pole_mass=0.6", f"transfer.source=[{source_library / 'm3.0'},{source_library / 'm0.5'}]",
+            "transfer.select=mixture", "approach=qtl_bayesian")
+    run(tiny_config("episodes=1", *args), tmp_path / "resumed")
+    run(tiny_config("episodes=2", *args), tmp_path / "resumed", resume=True)
+    run(tiny_config("episodes=2", *args), tmp_path / "straight")
+    resumed, straight = ((tmp_path / d / "metrics.csv").read_text() for d in ("resumed", "straight"))
+    assert resumed == straight and resumed.splitlines()[-1].endswith(",1")  # the 0.5 kg source, listed second

@@ -15,7 +15,7 @@ from qtl.loop import run
 from qtl.models import DynamicsGP
 from qtl.task import Task
 from qtl.transfer import SourceRun
-from qtl.transfer.source import _stored_theta
+from qtl.transfer.source import _stored_theta, source_dirs
 from tests.helpers import tiny_config
 
 
@@ -119,3 +119,12 @@ def test_a_speed_source_stored_with_theta_of_every_output_gives_theta_s_of_its_m
     torch.testing.assert_close(source.theta.natural(), full.natural()[[1, 3]], rtol=0, atol=0)
     model = source.model(AngleFeatures(4, source.task.angle_dims))
     assert model.outputs == (1, 3) and model.train_y.shape[-1] == 2
+
+
+def test_source_dirs_reads_a_run_a_list_or_a_directory_of_runs(source_library, tmp_path):
+    light, heavy = source_library / "m0.5", source_library / "m3.0"
+    (source_library / "notes").mkdir(exist_ok=True)  # a subfolder without checkpoints is not a run
+    assert source_dirs(str(light)) == [light.resolve()]
+    assert source_dirs(str(source_library)) == [light.resolve(), heavy.resolve()]
+    assert source_dirs([str(heavy), str(light)]) == [heavy.resolve(), light.resolve()]
+    assert source_dirs(str(tmp_path)) == [tmp_path.resolve()]  # no run in it: SourceRun.load refuses it
