@@ -21,9 +21,9 @@ from torch.utils.tensorboard import SummaryWriter
 
 from qtl.metrics import CONVERGED_FRACTION, FINAL_EPISODES, area_under_curve, final_performance, first_success
 from qtl.models import GPHyperparameters
-from qtl.recorder import SOURCE_COMPLIANCE_PREFIX, THETA_P_PREFIX, THETA_PREFIX
+from qtl.recorder import THETA_P_PREFIX, THETA_PREFIX
 from qtl.task import Task
-from qtl.transfer.plan import TransferPlan
+from qtl.transfer.plan import SOURCE_COMPLIANCE_PREFIX, TransferPlan
 
 OUTCOME_PREFIX = "outcome"
 ENV_PREFIX = "env"  # hyper-parameter names of the target's env kwargs: env/pole_mass, ...

@@ -15,6 +15,7 @@ from torch.utils.tensorboard import SummaryWriter
 from qtl.constraints import Constraint
 from qtl.health import EVENTS
 from qtl.models import GPHyperparameters
+from qtl.transfer.plan import SELECTED_SOURCE, SOURCE_COMPLIANCE_PREFIX
 from qtl.video import Clip, video_summary
 
 if TYPE_CHECKING:  # matplotlib loads only where a figure is drawn (~0.7 s off every CLI start)
@@ -27,8 +28,6 @@ METRICS_FILE = "metrics.csv"  # the one spelling: qtl.metrics, qtl.report and th
 THETA_PREFIX = "theta"  # θ_i, what the episode's model used
 THETA_P_PREFIX = "theta_p"  # θ_p_i, what evidence maximisation found
 START_PREFIX = "start"  # μ_0, σ_0 estimated from the episodes' initial states (tasks with no start distribution)
-SOURCE_COMPLIANCE_PREFIX = "compliance"  # Λ_k of source k (Eq. 14), runs with several sources only
-SELECTED_SOURCE = "selected_source"  # k of the source θ_s and ψ_s are taken from, runs with several sources only
 # Wall times differ between identical runs, so they live apart from metrics.csv (which same seed
 # reproduces exactly).
 TIMINGS_FILE = "timings.csv"

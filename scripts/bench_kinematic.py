@@ -70,6 +70,7 @@ def section(task: str, info: dict[str, Any]) -> list[str]:
     status = {True: "met", False: "NOT met", None: "not judged: a partial run"}[verdict["passed"]]
     medians = verdict["median_first_success"]
     rows = [[r["seed"], name, "—" if r["first_success"] is None else r["first_success"],
+             f"{sum(r['successes'][1:])} of {len(r['successes']) - 1}",
              " ".join(f"{v:.1f}" for v in r["returns"]), f"{r['model_fit_s_per_episode']:.1f}",
              f"{r['policy_search_s_per_episode']:.1f}"]
             for name in INTEGRATIONS for r in info["arms"][name]]
@@ -87,8 +88,9 @@ def section(task: str, info: dict[str, Any]) -> list[str]:
         f"seeds succeeded; median first success {_episode(medians['speed'])} (speed) vs "
         f"{_episode(medians['delta'])} (delta)).**",
         "",
-        markdown_table(rows, ["seed", "integration", "first success (episode, 0 = random)", "returns per episode",
-                              "model fit (s/episode)", "policy search (s/episode)"], "rllrrr"),
+        markdown_table(rows, ["seed", "integration", "first success (episode, 0 = random)",
+                              "successful learned episodes", "returns per episode", "model fit (s/episode)",
+                              "policy search (s/episode)"], "rllrrrr"),
     ]
 
 

@@ -10,18 +10,23 @@ is given (the real episodes' states, from the run's newest checkpoint), from the
 from __future__ import annotations
 
 import math
+import statistics
+import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import torch
 from hydra import compose, initialize_config_module
 from omegaconf import OmegaConf
 
 from qtl.bench.runs import read_csv
+from qtl.build import build
 from qtl.checkpoint import run_checkpoint
 from qtl.config import checked_task, register_configs
 from qtl.recorder import METRICS_FILE, TIMINGS_FILE
+from qtl.runs import load_run, with_overrides
 
 CROSSED_COLUMN = "crossed"  # metrics.csv: 1 if the real episode's states left a declared bound
 
@@ -133,3 +138,28 @@ def declared_bounds(overrides: Sequence[str]) -> list[Bound]:
     task = OmegaConf.to_container(cfg.task, resolve=True)
     checked_task(task)  # type: ignore[arg-type]
     return bounds_of(task.get("constraints") or [])  # type: ignore[union-attr]
+
+
+def same_model_cost(run_dir: Path, repeats: int = 7, seed: int = 0) -> dict:
+    """One rollout + gradient with and without the run's constraints on the same model, ψ and start: median s.
+
+    The model is fitted (``seed``) to the run's data after its last episode, ψ is its last policy; the two
+    propagators alternate, ``repeats`` times each after a warm-up, so both see the same machine.
+    """
+    run = load_run(run_dir)
+    arms = {"with": run.parts, "without": build(with_overrides(run.config, ["task.constraints=[]"]))}
+    data = run.dataset()
+    model = run.parts.fit_dynamics(data, torch.Generator().manual_seed(seed))
+    policy = run.policy()
+    task = run.parts.task
+    propagators = {arm: parts.make_propagator(model, policy, parts.reward, angle_dims=task.angle_dims)
+                   for arm, parts in arms.items()}
+    times: dict[str, list[float]] = {arm: [] for arm in arms}
+    for _ in range(repeats + 1):  # the first of each is a warm-up
+        for arm, propagator in propagators.items():
+            policy.zero_grad()
+            tic = time.perf_counter()
+            propagator.expected_return(run.parts.start, task.horizon).backward()
+            times[arm].append(time.perf_counter() - tic)
+    return {"n": len(data), "episode": run.episode, "repeats": repeats,
+            **{f"{arm}_s": statistics.median(t[1:]) for arm, t in times.items()}}

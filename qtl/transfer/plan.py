@@ -14,7 +14,6 @@ from torch import nn
 from qtl.errors import TransferError
 from qtl.features import AngleFeatures
 from qtl.models import DynamicsGP, GPHyperparameters
-from qtl.recorder import SELECTED_SOURCE, SOURCE_COMPLIANCE_PREFIX
 from qtl.task import Task
 from qtl.transfer.compliance import DEFAULT_COMPLIANCE, compliance_value
 from qtl.transfer.rules import HyperparameterRule
@@ -25,6 +24,8 @@ log = logging.getLogger(__name__)
 # transfer.select with several sources: θ_s (and ψ_s) of the most compliant source, or θ_s the Λ-weighted mean of
 # the sources' log θ_s (ψ_s still the most compliant one's).
 SELECT_MODES = ("compliance", "mixture")
+SOURCE_COMPLIANCE_PREFIX = "compliance"  # metrics.csv: Λ_k of source k (Eq. 14), runs with several sources only
+SELECTED_SOURCE = "selected_source"  # metrics.csv: k of the source θ_s and ψ_s are taken from (several sources)
 
 
 class TransferPlan:

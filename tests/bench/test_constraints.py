@@ -16,10 +16,13 @@ from qtl.bench.constraints import (
     constraint_figures,
     declared_bounds,
     episode_crossings,
+    same_model_cost,
     search_seconds_per_evaluation,
 )
 from qtl.checkpoint import save_checkpoint
+from qtl.loop import run as run_loop
 from qtl.recorder import METRICS_FILE, TIMINGS_FILE
+from tests.helpers import tiny_config
 
 TRACK = [Bound(0, -0.5, 0.5)]
 
@@ -120,3 +123,10 @@ def test_declared_bounds_of_the_shipped_tasks_and_of_the_switched_off_arm() -> N
     assert declared_bounds(["task=cartpole_track", "task.constraints=[]"]) == []
     assert declared_bounds(["task=inverted_pendulum"]) == [Bound(1, -0.2, 0.2)]
     assert declared_bounds(["task=cartpole"]) == []
+
+
+def test_same_model_cost_times_both_propagators_on_one_model(tmp_path: Path) -> None:
+    run_loop(tiny_config("task=cartpole_track", "episodes=1"), tmp_path)
+    cost = same_model_cost(tmp_path, repeats=1)
+    assert cost["episode"] == 1 and cost["n"] > 0 and cost["repeats"] == 1
+    assert cost["with_s"] > 0 and cost["without_s"] > 0

@@ -81,3 +81,9 @@ def test_section_states_command_verdict_bounds_and_results_file() -> None:
     assert "`python scripts/bench_constraints.py` at commit abc1234 — 2026-12-06, test CPU (2 cores)" in text
     assert "x[0] in [-0.5, 0.5]" in text and "`docs/bench/constraints.json`" in text
     assert "— met (4 of 5 seeds; 2 crossings with, 7 without)" in text
+
+
+def test_the_cost_line_reads_the_same_model_measurement() -> None:
+    line = bench_constraints.cost_line({"seed": 0, "episode": 9, "n": 320, "repeats": 7, "with_s": 0.030,
+                                        "without_s": 0.025})
+    assert "n = 320" in line and "30.0 ms with the constraint and 25.0 ms without" in line and "ratio 1.20" in line

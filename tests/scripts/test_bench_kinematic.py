@@ -11,8 +11,8 @@ bench_kinematic = script("bench_kinematic")
 
 def arm(*firsts: int | None) -> list[dict]:
     """One arm's per-seed results with these first successes (None: never)."""
-    return [{"seed": s, "first_success": f, "returns": [0.0, 1.0], "model_fit_s_per_episode": 1.0,
-             "policy_search_s_per_episode": 2.0} for s, f in enumerate(firsts)]
+    return [{"seed": s, "first_success": f, "returns": [0.0, 1.0], "successes": [0, int(f is not None)],
+             "model_fit_s_per_episode": 1.0, "policy_search_s_per_episode": 2.0} for s, f in enumerate(firsts)]
 
 
 def test_a_seed_that_never_succeeds_counts_as_later_than_any_that_does():
@@ -38,4 +38,4 @@ def test_the_section_shows_both_arms_and_the_verdict():
             "output": "docs/bench/kinematic-x.json", "verdict": bench_kinematic.judge(arms, 8), "arms": arms}
     text = "\n".join(bench_kinematic.section("x", info))
     assert "— met (4 of 5 seeds succeeded; median first success 3 (speed) vs 3 (delta))" in text
-    assert text.count("| delta ") == 5 and text.count("| speed ") == 5
+    assert text.count("| delta ") == 5 and text.count("| speed ") == 5 and "1 of 1 |" in text and "0 of 1 |" in text
