@@ -18,10 +18,10 @@ from __future__ import annotations
 
 import argparse
 import json
-from pathlib import Path
 
 from qtl.bench import (
     ROOT,
+    add_learning_arguments,
     command_line,
     commit,
     machine,
@@ -41,14 +41,9 @@ JUDGED_SEEDS = 5  # ... this many seeds; fewer seeds make a partial run that is 
 def main() -> None:
     """Run every seed (reusing or resuming runs), judge the requirement, write the JSON and the section."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
-    parser.add_argument("--within", type=int, default=REQUIRED_EPISODES,
-                        help="success required within this many episodes, the random one included")
-    parser.add_argument("--episodes", type=int, help="learned episodes per run (default: --within − 1)")
-    parser.add_argument("--jobs", type=int, default=2, help="runs in parallel")
-    parser.add_argument("--threads", type=int, default=1, help="torch threads per run")
+    add_learning_arguments(parser, seeds=[0, 1, 2, 3, 4], within=REQUIRED_EPISODES,
+                           runs_dir=ROOT / "runs" / "bench_cartpole")
     parser.add_argument("--tag", default="", help="names the result files and table (e.g. 'particles')")
-    parser.add_argument("--runs-dir", type=Path, default=ROOT / "runs" / "bench_cartpole")
     args, overrides = parse_with_overrides(parser)
     if args.episodes is None:
         args.episodes = args.within - 1

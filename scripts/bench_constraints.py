@@ -20,13 +20,13 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import statistics
-from pathlib import Path
 
 import torch
 from hydra.errors import HydraException
 
 from qtl.bench import (
     ROOT,
+    add_learning_arguments,
     command_line,
     commit,
     first_successes,
@@ -135,14 +135,9 @@ def cost_line(cost: dict) -> str:
 def main() -> None:
     """Run both arms for every seed (reusing or resuming runs), judge the requirement, write the JSON and section."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
-    parser.add_argument("--within", type=int, default=REQUIRED_EPISODES,
-                        help="success required within this many episodes, the random one included")
-    parser.add_argument("--episodes", type=int, help="learned episodes per run (default: --within − 1)")
-    parser.add_argument("--jobs", type=int, default=2, help="runs in parallel")
-    parser.add_argument("--threads", type=int, default=1, help="torch threads per run")
+    add_learning_arguments(parser, seeds=[0, 1, 2, 3, 4], within=REQUIRED_EPISODES,
+                           runs_dir=ROOT / "runs" / "bench_constraints")
     parser.add_argument("--tag", default="", help="names the result files and table")
-    parser.add_argument("--runs-dir", type=Path, default=ROOT / "runs" / "bench_constraints")
     parser.add_argument("--no-docs", action="store_true", help="write the JSON only, not docs/benchmarks.md")
     args, overrides = parse_with_overrides(parser)
     if args.within < 1 or min(args.seeds) < 0 or args.jobs < 1 or args.threads < 1:

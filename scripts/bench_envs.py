@@ -28,6 +28,7 @@ import yaml
 
 from qtl.bench import (
     ROOT,
+    add_learning_arguments,
     command_line,
     commit,
     machine,
@@ -139,13 +140,7 @@ def main() -> None:
     """Run every example and seed (reusing or resuming runs), merge with the stored results, write the section."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--envs", nargs="+", default=list(EXAMPLES), choices=EXAMPLES)
-    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
-    parser.add_argument("--within", type=int, default=REQUIRED_EPISODES,
-                        help="success required within this many episodes, the random one included")
-    parser.add_argument("--episodes", type=int, help="learned episodes per run (default: --within − 1)")
-    parser.add_argument("--jobs", type=int, default=2, help="runs in parallel")
-    parser.add_argument("--threads", type=int, default=1, help="torch threads per run")
-    parser.add_argument("--runs-dir", type=Path, default=ROOT / "runs" / "bench_envs")
+    add_learning_arguments(parser, seeds=[0, 1, 2], within=REQUIRED_EPISODES, runs_dir=ROOT / "runs" / "bench_envs")
     args, overrides = parse_with_overrides(parser)
     if args.episodes is None:
         args.episodes = args.within - 1

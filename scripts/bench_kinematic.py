@@ -21,11 +21,11 @@ import argparse
 import json
 import math
 import statistics
-from pathlib import Path
 from typing import Any
 
 from qtl.bench import (
     ROOT,
+    add_learning_arguments,
     command_line,
     commit,
     machine,
@@ -98,14 +98,10 @@ def main() -> None:
     """Run both arms of every task (reusing or resuming runs), judge, write the JSON and the sections."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--tasks", nargs="+", default=["mountaincar"], help="tasks that declare task.kinematics")
-    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
-    parser.add_argument("--within", type=int, default=REQUIRED_EPISODES,
-                        help="success required within this many episodes, the random one included")
-    parser.add_argument("--jobs", type=int, default=2, help="runs in parallel")
-    parser.add_argument("--threads", type=int, default=1, help="torch threads per run")
-    parser.add_argument("--runs-dir", type=Path, default=ROOT / "runs" / "bench_kinematic")
+    add_learning_arguments(parser, seeds=[0, 1, 2, 3, 4], within=REQUIRED_EPISODES,
+                           runs_dir=ROOT / "runs" / "bench_kinematic")
     args, overrides = parse_with_overrides(parser)
-    episodes = args.within - 1
+    episodes = args.within - 1 if args.episodes is None else args.episodes
 
     for task in args.tasks:
         jobs = [(name, seed) for name in INTEGRATIONS for seed in args.seeds]

@@ -27,11 +27,12 @@ from qtl.bench.record import (
     write_results,
     write_section,
 )
-from qtl.bench.runs import parse_with_overrides, read_csv, run_all, run_seed
+from qtl.bench.runs import add_learning_arguments, parse_with_overrides, read_csv, run_all, run_seed
 
 __all__ = [
     "BENCHMARKS_MD",
     "ROOT",
+    "add_learning_arguments",
     "command_line",
     "commit",
     "display_path",

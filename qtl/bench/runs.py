@@ -33,6 +33,21 @@ def parse_with_overrides(parser: argparse.ArgumentParser,
     return args, overrides
 
 
+def add_learning_arguments(parser: argparse.ArgumentParser, *, seeds: Sequence[int], within: int,
+                           runs_dir: Path) -> None:
+    """The options every learning benchmark takes: --seeds, --within, --episodes, --jobs, --threads, --runs-dir.
+
+    ``args.episodes`` is None unless given: the learned episodes per run are then ``--within`` − 1.
+    """
+    parser.add_argument("--seeds", type=int, nargs="+", default=list(seeds))
+    parser.add_argument("--within", type=int, default=within,
+                        help="success required within this many episodes, the random one included")
+    parser.add_argument("--episodes", type=int, help="learned episodes per run (default: --within − 1)")
+    parser.add_argument("--jobs", type=int, default=2, help="runs in parallel")
+    parser.add_argument("--threads", type=int, default=1, help="torch threads per run")
+    parser.add_argument("--runs-dir", type=Path, default=runs_dir, help="where the runs are made (and reused)")
+
+
 def run_all(fn: Callable[[T], R], items: Sequence[T], jobs: int) -> list[R]:
     """``fn`` over ``items``, ``jobs`` at a time, in order; every item runs even when another fails.
 
