@@ -1,4 +1,4 @@
-"""A per-particle reference of marginal particle paths: the GP posterior at each particle, the propagator's noise."""
+"""References for propagation tests: marginal particle paths per particle, and draws of a step's joint Gaussian."""
 
 from __future__ import annotations
 
@@ -37,3 +37,22 @@ def assert_marginal_paths(particles: Particles, gp, policy, start: Gaussian, hor
             x = step(x, mean + var.sqrt() * step_noise[t])
             expected.append(x)
     torch.testing.assert_close(states, torch.stack(expected, dim=1), rtol=EXACT_RTOL, atol=EXACT_ATOL)
+
+
+def joint_draws(joint: tuple[Tensor, ...], count: int, generator: torch.Generator,
+                noise_variance: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    """``count`` draws of (x_t, Δ) from the joint Gaussian a recorded step: x `count x D`, Δ `count x E'`.
+
+    ``joint``: (μ, Σ, μ_Δ, Σ_Δ, cov[x, Δ]) as ``moment_terms`` receives them; ``noise_variance`` `E'`: σ_ε², added to Δ
+    as independent noise (a step with ``include_noise``), drawn after the joint from the same ``generator``.
+    """
+    mean, cov, delta_mean, delta_cov, cross = joint
+    joint_mean = torch.cat([mean, delta_mean])
+    joint_cov = torch.cat([torch.cat([cov, cross], 1), torch.cat([cross.T, delta_cov], 1)], 0)
+    draws = joint_mean + torch.randn(count, len(joint_mean), generator=generator, dtype=mean.dtype) @ \
+        torch.linalg.cholesky(joint_cov).T
+    x, delta = draws[:, :len(mean)], draws[:, len(mean):]
+    if noise_variance is not None:
+        delta = delta + torch.randn(count, len(delta_mean), generator=generator, dtype=mean.dtype) * \
+            noise_variance.sqrt()
+    return x, delta

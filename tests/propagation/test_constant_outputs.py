@@ -13,7 +13,7 @@ from qtl.models import DynamicsGP
 from qtl.propagation import MomentMatching, Particles
 from qtl.propagation.integration import LinearIntegration, OffsetIntegration, SpeedIntegration
 from tests.helpers import gradcheck_value_wrt_policy_and_start, squashed_rbf_parts
-from tests.propagation.reference import assert_marginal_paths
+from tests.propagation.reference import assert_marginal_paths, joint_draws
 from tests.propagation.test_integration import CARTPOLE, LONG_PERIOD, cartpole_parts, trapezoid
 
 DTYPE = torch.float64
@@ -75,14 +75,8 @@ def test_one_step_equals_a_monte_carlo_of_the_joint_through_the_offset_map(gp_fa
                                 engine=Engine(moments=engine))
     with torch.no_grad():
         nxt, _ = propagator.step(start())
-    mean, cov, delta_mean, delta_cov, cross = integration.joint
-    joint = Gaussian(torch.cat([mean, delta_mean]),
-                     torch.cat([torch.cat([cov, cross], 1), torch.cat([cross.T, delta_cov], 1)], 0))
-    gen = torch.Generator().manual_seed(8)
-    draws = joint.mean + torch.randn(200_000, 5, generator=gen, dtype=DTYPE) @ torch.linalg.cholesky(joint.cov).T
-    x, delta = draws[:, :3], draws[:, 3:]
-    if include_noise:
-        delta = delta + torch.randn(200_000, 2, generator=gen, dtype=DTYPE) * propagator.noise_variance.sqrt()
+    x, delta = joint_draws(integration.joint, 200_000, torch.Generator().manual_seed(8),
+                           propagator.noise_variance if include_noise else None)
     stepped = with_constant(x, torch.cat([delta, torch.zeros(200_000, 1, dtype=DTYPE)], dim=-1))
     centred = stepped - stepped.mean(0)
     mc.assert_mean(nxt.mean, stepped, "next mean")

@@ -16,6 +16,7 @@ from qtl.propagation import MomentMatching
 from qtl.propagation.integration import LinearIntegration, SpeedIntegration
 from qtl.task import Kinematics
 from tests.helpers import gradcheck_value_wrt_policy_and_start, tiny_config
+from tests.propagation.reference import joint_draws
 from tests.propagation.test_integration import CARTPOLE, LONG_PERIOD, MODELLED, cartpole_parts, start, trapezoid
 
 DTYPE = torch.float64
@@ -90,15 +91,9 @@ def test_one_step_equals_a_monte_carlo_of_the_joint_through_the_linear_map(gp_fa
                                 include_noise=include_noise, engine=ENGINES[engine])
     with torch.no_grad():
         nxt, _ = propagator.step(start())
-    mean, cov, delta_mean, delta_cov, cross = integration.joint
-    joint = Gaussian(torch.cat([mean, delta_mean]),
-                     torch.cat([torch.cat([cov, cross], 1), torch.cat([cross.T, delta_cov], 1)], 0))
-    gen = torch.Generator().manual_seed(7)
-    draws = joint.mean + torch.randn(200_000, 6, generator=gen, dtype=DTYPE) @ torch.linalg.cholesky(joint.cov).T
-    x, delta = draws[:, :4], draws[:, 4:]
-    if include_noise:
-        noise_std = propagator.noise_variance.sqrt()
-        delta = delta + torch.randn(200_000, 2, generator=gen, dtype=DTYPE) * noise_std
+    cov = integration.joint[1]
+    x, delta = joint_draws(integration.joint, 200_000, torch.Generator().manual_seed(7),
+                           propagator.noise_variance if include_noise else None)
     full = torch.zeros_like(x)
     full[:, MODELLED] = delta
     stepped = trapezoid(x, full, LONG_PERIOD)  # written out, not the integration's A and J
