@@ -31,6 +31,7 @@ from qtl.rewards import AngleDistanceReward, ExpectedSaturatingReward
 from qtl.seeding import ENV_STREAM, POLICY_INIT_STREAM, derive_seed, torch_generator
 from qtl.task import Task, diagonal_gaussian
 from qtl.transfer.plan import TransferPlan
+from qtl.transfer.samples import WeightedSamples
 
 DTYPES = {"float64": torch.float64, "float32": torch.float32}
 # Draws from the start distribution from which the initial support points are taken.
@@ -109,21 +110,32 @@ class Parts:
                                  features=self.features, generator=generator, dtype=self.dtype)
         return SquashedPolicy(inner, torch.as_tensor(self.task.action_bound, dtype=self.dtype)).to(self.device)
 
-    def fit_dynamics(
-        self, data: TransitionDataset, generator: torch.Generator, start: GPHyperparameters | None = None,
-        previous: PreviousFit | None = None,
-    ) -> DynamicsGP:
-        """θ_p by evidence maximisation on all tuples (line 12), from ``start`` or PILCO's heuristic, on the device.
-
-        The GP is fitted on the modelled outputs' Δ only (:attr:`modelled`). ``previous``: the last episode's fit,
-        where ``model.warm_start`` starts from (ignored when off).
-        """
+    def gp_data(self, data: TransitionDataset) -> tuple[Tensor, Tensor]:
+        """The GP's training pairs of ``data``: inputs `n x (F+U)`, Δ of the modelled outputs `n x E`, on the device."""
         inputs, targets = gp_training_pairs(data, self.features, self.dtype, self.device)
         outputs = self.modelled
         if outputs != tuple(range(targets.shape[-1])):
             targets = targets[:, list(outputs)]
-        return self.model.fit(inputs, targets, start=start, generator=generator, previous=previous, outputs=outputs,
-                              state_dim=self.task.state_dim)
+        return inputs, targets
+
+    def fit_dynamics(
+        self, data: TransitionDataset, generator: torch.Generator, start: GPHyperparameters | None = None,
+        previous: PreviousFit | None = None, samples: WeightedSamples | None = None,
+    ) -> DynamicsGP:
+        """θ_p by evidence maximisation on all tuples (line 12), from ``start`` or PILCO's heuristic, on the device.
+
+        The GP is fitted on the modelled outputs' Δ only (:attr:`modelled`). ``previous``: the last episode's fit,
+        where ``model.warm_start`` starts from (ignored when off). ``samples``: source tuples after the target's,
+        with noise σ_ε² / w at the θ they were judged at (``transfer.samples=relevance``, :mod:`qtl.transfer.samples`).
+        """
+        inputs, targets = self.gp_data(data)
+        extra = None
+        if samples is not None:  # the target's tuples first, with no extra noise
+            extra = torch.cat([torch.zeros_like(targets), samples.extra_noise.to(targets)])
+            inputs, targets = torch.cat([inputs, samples.inputs.to(inputs)]), torch.cat([targets,
+                                                                                         samples.targets.to(targets)])
+        return self.model.fit(inputs, targets, start=start, generator=generator, previous=previous,
+                              outputs=self.modelled, state_dim=self.task.state_dim, extra_noise=extra)
 
     def actor(self, policy: Policy) -> Actor:
         """u = π(φ(x)) on real observations (line 11)."""

@@ -174,6 +174,8 @@ def start_dashboards(writer: SummaryWriter, cfg: DictConfig, task: Task, plan: T
     if plan.several:  # the choice among several sources, and a chart of every Λ_k
         hparams.update(sources=len(plan.sources), select=plan.select)
         layout.update(compliance_layout(len(plan.sources)))
+    if plan.samples != "none":  # source samples weighted by relevance, and how many at most
+        hparams.update(samples=plan.samples, max_source_samples=plan.max_source_samples)
     write_session(writer, hparams)
     writer.add_custom_scalars(layout)
     write_run_text(writer, OmegaConf.to_yaml(cfg, resolve=True), plan.describe())

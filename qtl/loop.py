@@ -139,12 +139,14 @@ def learned_episode(cfg: DictConfig, parts: Parts, state: RunState, env: gymnasi
     """Lines 12-13, 5, 6-9 and 10-11: θ_p, θ and f from all tuples; ψ improved over f; π(ψ) on the real system."""
     task, plan, row = parts.task, state.plan, {"episode": state.episodes}
     # -- Line 12: learn θ_p from all tuples (evidence maximisation). -----------------------------------
+    # (transfer.samples=relevance: with the source's tuples, each of noise σ_ε² / w, w its relevance.)
     tic = time.perf_counter()
+    samples = plan.source_samples(*parts.gp_data(state.data))
     model = parts.fit_dynamics(state.data, state.generator(MODEL_STREAM), start=plan.fit_start(),
-                               previous=state.previous)
+                               previous=state.previous, samples=samples)
     state.previous = PreviousFit.of(model)
     theta_p = model.hyperparameters
-    compliance = plan.compliance(model)  # Eq. 14 (NaN without a source)
+    compliance = plan.compliance(model if samples is None else model.head(len(state.data)))  # Eq. 14 (NaN: no source)
     # -- Lines 2, 13 and 5: θ_0 = θ_s, then the updating rule; f inferred with θ. ------------------------
     # (Λ below transfer.min_compliance here at the first model: θ = θ_p and ψ = PILCO's ψ_0.)
     state.theta = plan.update(theta_p, len(state.data), compliance, state.policy, model.outputs)
@@ -173,7 +175,7 @@ def learned_episode(cfg: DictConfig, parts: Parts, state: RunState, env: gymnasi
     row.update(kind="policy", predicted_return=predicted, model_smse=one_step_smse(model, real, parts.features,
                parts.dtype), model_log_evidence=log_evidence(model), policy_evaluations=found.evaluations,
                compliance=compliance, fallback=int(plan.fallen_back), **theta_row(state.theta, outputs=model.outputs),
-               **theta_row(theta_p, THETA_P_PREFIX, model.outputs), **plan.compliance_row())
+               **theta_row(theta_p, THETA_P_PREFIX, model.outputs), **plan.compliance_row(), **plan.sample_row())
     figure = video = None
     if cfg.figure_every > 0 and (state.episodes - cfg.random_episodes) % cfg.figure_every == 0:
         figure = prediction_figure(propagator, start, task.horizon, real, f"episode {state.episodes}: predicted vs "
@@ -209,7 +211,8 @@ def _open_recorder(cfg: DictConfig, output_dir: Path, task: Task, state: RunStat
     modelled = state.plan.outputs  # θ's columns name the state dimensions the GP models
     columns = (BASE_COLUMNS + theta_columns(len(modelled), task.gp_input_dim, outputs=modelled)
                + theta_columns(len(modelled), task.gp_input_dim, THETA_P_PREFIX, modelled)
-               + (start_columns(task.state_dim) if task.start_estimated else []) + state.plan.compliance_columns())
+               + (start_columns(task.state_dim) if task.start_estimated else []) + state.plan.compliance_columns()
+               + state.plan.sample_columns())
     if state.episodes < total:
         log.info("%s", state.plan.describe())
         log.info("kernels: %s; exp sums %s, moments %s", engine.describe(), engine.exp_sums, engine.moments)

@@ -16,6 +16,7 @@ from qtl.constraints import Constraint
 from qtl.health import EVENTS
 from qtl.models import GPHyperparameters
 from qtl.transfer.plan import SELECTED_SOURCE, SOURCE_COMPLIANCE_PREFIX
+from qtl.transfer.samples import SAMPLE_COLUMNS
 from qtl.video import Clip, video_summary
 
 if TYPE_CHECKING:  # matplotlib loads only where a figure is drawn (~0.7 s off every CLI start)
@@ -174,6 +175,7 @@ class RunRecorder:
         tags.update({f"transfer/{k}": v for k, v in row.items() if k.startswith(f"{SOURCE_COMPLIANCE_PREFIX}/")})
         if SELECTED_SOURCE in row:
             tags[f"transfer/{SELECTED_SOURCE}"] = row[SELECTED_SOURCE]
+        tags.update({f"transfer/{k}": row[k] for k in SAMPLE_COLUMNS if k in row})  # transfer.samples=relevance
         tags.update({f"health/{event}": health[event] for event in EVENTS})
         for tag, value in tags.items():
             if value is not None and value != "" and math.isfinite(float(value)):

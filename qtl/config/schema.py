@@ -233,6 +233,14 @@ class TransferConfig:
         default=None, metadata=doc("with several sources, the source run whose ψ_s acts in the initial episodes (one "
                                    "of the sources; null: random actions)"),
     )
+    samples: str = field(
+        default="none",
+        metadata=doc("none | relevance: up to max_source_samples tuples of the source join each model's data with "
+                     "noise σ_ε²/w, w their relevance to the target's tuples (docs/guide/transfer.md)"),
+    )
+    max_source_samples: int = field(
+        default=200, metadata=doc("the most source tuples in the GP's data (evenly spaced over the source's data)"),
+    )
     hyperparameters: bool = field(
         default=True, metadata=doc("θ_0 = θ_s, then the rule (rule=free|forgetting|bayesian)"),
     )

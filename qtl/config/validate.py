@@ -35,6 +35,7 @@ from qtl.task import (
 from qtl.transfer.compliance import BANDWIDTHS, COMPLIANCES, DEFAULT_COMPLIANCE
 from qtl.transfer.plan import SELECT_MODES
 from qtl.transfer.rules import HyperparameterRule
+from qtl.transfer.samples import SAMPLE_MODES
 
 FLATTEN_HINT = (
     "flatten it in your own env registration (gymnasium.wrappers.FlattenObservation for observations) "
@@ -115,7 +116,14 @@ def check_transfer(cfg: Mapping[str, Any], rule: HyperparameterRule) -> None:
         raise TransferError(f"transfer.select must be one of {', '.join(SELECT_MODES)}, got {select!r}")
     if initial_policy is not None and (not isinstance(initial_policy, str) or not initial_policy):
         raise TransferError(f"transfer.initial_policy must be a source run directory, got {initial_policy!r}")
+    samples, max_samples = str(cfg.get("samples") or "none"), cfg.get("max_source_samples", 1)
+    if samples not in SAMPLE_MODES:
+        raise TransferError(f"transfer.samples must be one of {', '.join(SAMPLE_MODES)}, got {samples!r}")
+    if isinstance(max_samples, bool) or not isinstance(max_samples, int) or max_samples < 1:
+        raise TransferError(f"transfer.max_source_samples must be an integer >= 1, got {max_samples!r}")
     if cfg.get("source") is None:
+        if samples != "none":
+            raise TransferError("transfer.samples=relevance takes the source's tuples: give transfer.source=<run dir>")
         if initial_policy is not None:
             raise TransferError("transfer.initial_policy names one of the sources: give transfer.source=<run dir(s)>")
         if rule.uses_source:

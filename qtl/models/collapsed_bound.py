@@ -17,6 +17,15 @@ three `E x n x m` products (Ã by a triangular solve, P, S Ã) and one more solv
 same bound forms about twice that, a dozen elementwise passes over `E x n x m`, and the backward of two Cholesky
 factorisations. β is B⁻¹ r by two triangular solves, never by B⁻¹ times r: r lies along B's large eigenvalues
 (~1e8 once learned Z crowd the data) and the explicit product would lose the gradient to O(1) relative error.
+
+Per-point noise λ_i = σ² + c_i (c fixed, :mod:`qtl.models.point_noise`), Λ = diag(λ): since Q + Λ = Λ^{1/2} (Q̃ + I)
+Λ^{1/2} with Q̃ the Nyström matrix of the rows K̃_fu = Λ^{-1/2} K_fu, F = log N(y | 0, Q + Λ) − ½ tr(Λ⁻¹ (K_ff − Q))
+is the bound above at σ² = 1 of those rows and ỹ = Λ^{-1/2} y, with n α² replaced by α² Σ_i 1/λ_i and −n/2 log σ²
+by −½ Σ_i log λ_i. Its gradient in K̃_fu and K_uu is the one above at σ² = 1, and ∂F/∂K_fu ∘ K_fu = ∂F/∂K̃_fu ∘ K̃_fu
+(the row scale cancels), so ℓ, Z and α² go through W unchanged (n/σ² → Σ_i 1/λ_i in α²'s explicit term). σ² moves
+every λ_i, hence K̃_fu and ỹ (∂K̃_ij/∂λ_i = −K̃_ij / (2λ_i)): with W_i = Σ_j W_ij and f̃ = Ãᵀ β the scaled fit,
+
+    ∂F/∂σ² = Σ_i ∂F/∂λ_i = Σ_i [−(W_i + ỹ_i (f̃_i − ỹ_i)) / (2λ_i) − 1/(2λ_i) + α² / (2λ_i²)].
 """
 
 from __future__ import annotations
@@ -53,14 +62,15 @@ def _spread(row: Tensor, col: Tensor, weighted: Tensor, z: Tensor, x: Tensor) ->
 class CollapsedBound(torch.autograd.Function):
     """F per output `E` and its backward in closed form (module docstring).
 
-    Inputs: ℓ `E x D`, α² `E`, σ² `E`, Z `m x D` (shared by the outputs), X `n x D`, y `E x n`, the jitter δ / α².
-    X and y are data: no gradient flows to them. K_fu and Ãᵀ are held `E x n x m`, the layout in which the
+    Inputs: ℓ `E x D`, α² `E`, σ² `E`, Z `m x D` (shared by the outputs), X `n x D`, y `E x n`, the jitter δ / α²,
+    the per-point extra noise c `E x n` (or None). X, y and c are data: no gradient flows to them. With c, K_fu, y
+    and the noise saved are the rows over √λ and 1. K_fu and Ãᵀ are held `E x n x m`, the layout in which the
     triangular solves and the products need no copies.
     """
 
     @staticmethod
     def forward(ctx, lengthscales: Tensor, signal_variance: Tensor, noise_variance: Tensor, inducing: Tensor,
-                inputs: Tensor, targets: Tensor, jitter: float) -> Tensor:
+                inputs: Tensor, targets: Tensor, jitter: float, extra_noise: Tensor | None = None) -> Tensor:
         centre = inputs.mean(0)  # the kernel is stationary: centring keeps the expansion's cancellation small
         x, z = inputs - centre, inducing - centre
         n, m = x.shape[0], z.shape[0]
@@ -68,6 +78,13 @@ class CollapsedBound(torch.autograd.Function):
         k_uu = se_cross_covariance(z, z, lengthscales, signal_variance)  # E x m x m
         chol = psd_safe_cholesky(k_uu + (jitter * signal_variance)[:, None, None] * eye)
         k_fu = se_cross_covariance(x, z, lengthscales, signal_variance)  # E x n x m
+        point = None  # λ = σ² + c `E x n` with per-point noise
+        if extra_noise is not None:  # the rows over √λ at unit noise (module docstring)
+            point = noise_variance[:, None] + extra_noise
+            row_scale = point.rsqrt()
+            k_fu = k_fu.mul_(row_scale[..., None])
+            targets = targets * row_scale
+            noise_variance = torch.ones_like(noise_variance)
         a = torch.linalg.solve_triangular(chol.mT, k_fu, upper=True, left=False)  # Ãᵀ = K_fu L⁻ᵀ
         p = a.mT @ a
         r = (targets[:, None, :] @ a).squeeze(-2)  # E x m
@@ -76,18 +93,21 @@ class CollapsedBound(torch.autograd.Function):
         c = torch.linalg.solve_triangular(chol_b, r[..., None], upper=False).squeeze(-1)  # L_B⁻¹ r: |c|² = rᵀβ
         yy = targets.square().sum(-1)
         trace_p = p.diagonal(dim1=-2, dim2=-1).sum(-1)
-        value = (-0.5 * n * math.log(2 * math.pi) - 0.5 * n * noise_variance.log()
+        # ½ log |Λ| and tr(K_ff) / α² over the noise: ½ n log σ² and n, or ½ Σ_i log λ_i and Σ_i 1/λ_i.
+        log_noise = 0.5 * n * noise_variance.log() if point is None else 0.5 * point.log().sum(-1)
+        count = n if point is None else point.reciprocal().sum(-1)
+        value = (-0.5 * n * math.log(2 * math.pi) - log_noise
                  - chol_b.diagonal(dim1=-2, dim2=-1).log().sum(-1)
                  - 0.5 * (yy - c.square().sum(-1) / noise_variance) / noise_variance
-                 - 0.5 * (n * signal_variance - trace_p) / noise_variance)
+                 - 0.5 * (count * signal_variance - trace_p) / noise_variance)
         ctx.jitter = jitter
         ctx.save_for_backward(lengthscales, signal_variance, noise_variance, z, x, targets, k_uu, k_fu, a, chol, p, r,
-                              chol_b, yy, trace_p)
+                              chol_b, yy, trace_p, point)
         return value
 
     @staticmethod
     def backward(ctx, grad_value: Tensor) -> tuple[Tensor | None, ...]:
-        ls, sv, nv, z, x, y, k_uu, k_fu, a, chol, p, r, chol_b, yy, trace_p = ctx.saved_tensors
+        ls, sv, nv, z, x, y, k_uu, k_fu, a, chol, p, r, chol_b, yy, trace_p, point = ctx.saved_tensors
         n, m = x.shape[0], z.shape[0]
         eye = torch.eye(m, dtype=x.dtype, device=x.device)
         noise, scale = nv[:, None, None], grad_value[:, None, None]
@@ -105,12 +125,17 @@ class CollapsedBound(torch.autograd.Function):
         grad_uu = -0.5 * torch.linalg.solve_triangular(chol, torch.linalg.solve_triangular(chol.mT, c, upper=True),
                                                        upper=False, left=False)
         grad_uu = 0.5 * (grad_uu + grad_uu.mT)
-        # ∂F/∂σ² with P and r held.
-        quad_p = (beta.mT @ p @ beta).flatten(-3)  # βᵀPβ
-        r_beta = (r[:, None, :] @ beta).flatten(-3)  # rᵀβ
-        grad_noise = (-0.5 * n / nv + 0.5 * (m - b_inv.diagonal(dim1=-2, dim2=-1).sum(-1)) / nv
-                      + 0.5 * yy / nv**2 + 0.5 * quad_p / nv**4 - r_beta / nv**3
-                      + 0.5 * (n * sv - trace_p) / nv**2) * grad_value
+        if point is None:  # ∂F/∂σ² with P and r held.
+            quad_p = (beta.mT @ p @ beta).flatten(-3)  # βᵀPβ
+            r_beta = (r[:, None, :] @ beta).flatten(-3)  # rᵀβ
+            grad_noise = (-0.5 * n / nv + 0.5 * (m - b_inv.diagonal(dim1=-2, dim2=-1).sum(-1)) / nv
+                          + 0.5 * yy / nv**2 + 0.5 * quad_p / nv**4 - r_beta / nv**3
+                          + 0.5 * (n * sv - trace_p) / nv**2) * grad_value
+            count = n
+        else:  # ∂F/∂σ² = Σ_i ∂F/∂λ_i through the scaled rows, after W (module docstring)
+            count = point.reciprocal().sum(-1)
+            fit = (a @ beta).squeeze(-1)  # f̃ = Ãᵀ β `E x n`, Ã of the scaled rows
+            pull = y * (fit - y) * grad_value[:, None]  # ỹ_i ∂F/∂ỹ_i
         # Through the kernels K = α² exp(−½ Σ_d (a_d − b_d)² / ℓ_d²), with W = ∂F/∂K ∘ K.
         w_fu = grad_fu.mul_(k_fu)  # E x n x m (in place: ∂F/∂K_fu is not needed again)
         w_uu = grad_uu * k_uu  # E x m x m, symmetric
@@ -118,22 +143,29 @@ class CollapsedBound(torch.autograd.Function):
         uu_row, uu_z = w_uu.sum(-1), w_uu @ z  # E x m, E x m x D
         inv_sq = ls.square().reciprocal()  # E x D
         grad_signal = ((fu_row.sum(-1) + uu_row.sum(-1)) / sv
-                       + ctx.jitter * grad_uu.diagonal(dim1=-2, dim2=-1).sum(-1) - 0.5 * n / nv * grad_value)
+                       + ctx.jitter * grad_uu.diagonal(dim1=-2, dim2=-1).sum(-1) - 0.5 * count / nv * grad_value)
+        if point is not None:  # W_i = fu_col_i = Σ_j ∂F/∂K̃_ij K̃_ij
+            inv = point.reciprocal()
+            grad_noise = (-0.5 * (inv * (fu_col + pull)).sum(-1)
+                          + 0.5 * (sv * inv.square().sum(-1) - count) * grad_value)
         # ∂F/∂z_jd = −Σ_e [Σ_i W^fu_eij (z_jd − x_id) + 2 Σ_k W^uu_ejk (z_jd − z_kd)] / ℓ_ed²
         pull = (z * fu_row[..., None] - fu_x) + 2 * (z * uu_row[..., None] - uu_z)
         grad_inducing = -(pull * inv_sq[:, None, :]).sum(0)
         # ∂F/∂ℓ_ed = [Σ_ij W^fu_eij (x_id − z_jd)² + Σ_jk W^uu_ejk (z_jd − z_kd)²] / ℓ_ed³
         spread = _spread(fu_row, fu_col, fu_x, z, x) + _spread(uu_row, uu_row, uu_z, z, z)
         grad_lengthscales = spread * inv_sq / ls
-        return grad_lengthscales, grad_signal, grad_noise, grad_inducing, None, None, None
+        return grad_lengthscales, grad_signal, grad_noise, grad_inducing, None, None, None, None
 
 
 def collapsed_bound(inputs: Tensor, targets: Tensor, inducing: Tensor, lengthscales: Tensor, signal_variance: Tensor,
-                    noise_variance: Tensor, jitter: float) -> Tensor:
+                    noise_variance: Tensor, jitter: float, extra_noise: Tensor | None = None) -> Tensor:
     """F per output `E` (Titsias 2009, Eq. 9): X `n x D`, y `E x n`, Z `m x D`, ℓ `E x D`, α² `E`, σ² `E`.
+
+    ``extra_noise``: c `E x n`, point i of output e observed with noise σ² + c_ei (None: σ² for every point).
 
     K_uu carries δ = ``jitter`` · α² on its diagonal (as :class:`qtl.models.SparseDynamicsGP`). Differentiable in
     ℓ, α², σ² and Z. Raises linear_operator's ``NotPSDError`` where K_uu + δI is not factorisable even with the
     extra jitter GPyTorch adds.
     """
-    return CollapsedBound.apply(lengthscales, signal_variance, noise_variance, inducing, inputs, targets, jitter)
+    return CollapsedBound.apply(lengthscales, signal_variance, noise_variance, inducing, inputs, targets, jitter,
+                                extra_noise)

@@ -17,6 +17,7 @@ from qtl.models.exact_settings import exact_gp_settings
 from qtl.models.gp_checkpoint import GPCheckpoint
 from qtl.models.gp_evidence import GPEvidence
 from qtl.models.hyperparameters import GPHyperparameters
+from qtl.models.point_noise import PointNoise, checked_extra_noise
 
 # Hard floor on σ_ε² (absolute): keeps K + σ_ε²I factorisable whatever the data scale.
 NOISE_VARIANCE_MIN = 1e-10
@@ -67,6 +68,7 @@ class GPPosteriorCache:
     state_dim: int | None = None
     constant_outputs: tuple[int, ...] = ()
     constant_delta: Tensor | None = None
+    extra_noise: Tensor | None = None
 
 
 def checked_outputs(
@@ -112,6 +114,15 @@ def _check_data(train_x: Tensor, train_y: Tensor) -> None:
             raise ValueError(f"{name} contains {bad} non-finite value(s) (NaN or inf)")
 
 
+def _own_rows(extra_noise: Tensor | None, num_points: int) -> Tensor | slice:
+    """The rows of tuples without extra noise (a target's own), when there are enough to centre priors on; else all."""
+    if extra_noise is None:
+        return slice(None)
+    extra = torch.as_tensor(extra_noise)
+    own = (extra == 0).reshape(num_points, -1).all(-1) if extra.numel() else torch.ones(num_points, dtype=torch.bool)
+    return own if int(own.sum()) >= MIN_TRAIN_POINTS else slice(None)
+
+
 class DynamicsGP(GPEvidence, GPCheckpoint, gpytorch.models.ExactGP):
     """Δ = x_{t+1} − x_t as E independent GPs in one batch (Eq. 1-3).
 
@@ -127,6 +138,9 @@ class DynamicsGP(GPEvidence, GPCheckpoint, gpytorch.models.ExactGP):
     state (default: E without ``outputs``, else the largest output + 1); e.g. the velocities alone under speed
     integration (:mod:`qtl.propagation.integration`). ``constant_outputs``: state dimensions whose Δ the data
     showed constant, modelled as deterministic (Δ = ``constant_delta`` `C`, no variance; :mod:`qtl.models.constant`).
+    The priors (and the heuristic θ) centre on the tuples without extra noise, the target's own.
+    ``extra_noise``: c `n x E` (or `n`), tuple i of output e observed with noise σ_ε² + c_ei (c >= 0 fixed; source
+    samples weighted by relevance, :mod:`qtl.models.point_noise`); None: σ_ε² for every tuple.
     """
 
     def __init__(
@@ -139,6 +153,7 @@ class DynamicsGP(GPEvidence, GPCheckpoint, gpytorch.models.ExactGP):
         state_dim: int | None = None,
         constant_outputs: Sequence[int] = (),
         constant_delta: Tensor | None = None,
+        extra_noise: Tensor | None = None,
         dtype: torch.dtype = torch.float64,
     ) -> None:
         _check_data(train_x, train_y)
@@ -154,6 +169,11 @@ class DynamicsGP(GPEvidence, GPCheckpoint, gpytorch.models.ExactGP):
         likelihood = gpytorch.likelihoods.GaussianLikelihood(
             batch_shape=batch, noise_constraint=GreaterThan(NOISE_VARIANCE_MIN)
         )
+        if extra_noise is not None:  # σ_ε² + c_ei at the training tuples: the same θ, the same parameter names
+            extra = checked_extra_noise(extra_noise, train_x.shape[0], num_outputs).to(dtype=dtype,
+                                                                                       device=train_x.device)
+            likelihood.noise_covar = PointNoise(extra, batch_shape=batch,
+                                                      noise_constraint=GreaterThan(NOISE_VARIANCE_MIN))
         # ExactGP keeps `E x n x D` inputs and `E x n` targets: one GP per output dimension.
         super().__init__(
             train_x.expand(num_outputs, *train_x.shape), train_y.T.contiguous(), likelihood
@@ -167,7 +187,8 @@ class DynamicsGP(GPEvidence, GPCheckpoint, gpytorch.models.ExactGP):
         self.state_dim = state_dim  # D of the state x whose Δ the outputs are
         self.constant_outputs = tuple(int(d) for d in constant_outputs)  # state dimensions of a deterministic Δ
         self.register_buffer("constant_delta", constant_delta.to(dtype=dtype, device=train_x.device))  # C
-        self._register_data_priors(train_x, train_y)
+        own = _own_rows(extra_noise, train_x.shape[0])  # the priors centre on the target's own tuples
+        self._register_data_priors(train_x[own], train_y[own])
         self.to(dtype=dtype, device=train_x.device)
         self.hyperparameters = (
             hyperparameters if hyperparameters is not None else self.heuristic_hyperparameters()
@@ -232,6 +253,27 @@ class DynamicsGP(GPEvidence, GPCheckpoint, gpytorch.models.ExactGP):
         return self.train_targets.T
 
     @property
+    def extra_noise(self) -> Tensor | None:
+        """c `E x n`: σ_ε² + c_ei is the noise of tuple i of output e (None: σ_ε² for every tuple)."""
+        noise = self.likelihood.noise_covar
+        return noise.extra if isinstance(noise, PointNoise) else None
+
+    def point_noise(self) -> Tensor:
+        """The noise variance of every training tuple, σ_ε² s: `E x n`."""
+        noise = self.likelihood.noise.detach()  # E x 1
+        extra = self.extra_noise
+        return noise.expand(-1, self.train_x.shape[0]) if extra is None else noise + extra
+
+    def head(self, num_points: int) -> DynamicsGP:
+        """The exact GP of the first ``num_points`` tuples (a target's own, ahead of source samples) at this θ."""
+        exact = self.exact()
+        extra = exact.extra_noise
+        extra = None if extra is None or not bool(extra[:, :num_points].any()) else extra[:, :num_points].T
+        return DynamicsGP(exact.train_x[:num_points], exact.train_y[:num_points], exact.hyperparameters,
+                          outputs=exact.outputs, state_dim=exact.state_dim, constant_outputs=exact.constant_outputs,
+                          constant_delta=exact.constant_delta, extra_noise=extra, dtype=exact.train_x.dtype)
+
+    @property
     def hyperparameters(self) -> GPHyperparameters:
         """θ currently in the kernel and likelihood (detached copies)."""
         return GPHyperparameters(
@@ -284,6 +326,10 @@ class DynamicsGP(GPEvidence, GPCheckpoint, gpytorch.models.ExactGP):
             # In chunks: GPyTorch forms the test-test covariance of each call, `m x m` per output.
             for chunk in x.split(PREDICT_CHUNK):
                 dist = self(chunk.expand(self.num_outputs, *chunk.shape))
+                if include_noise and self.extra_noise is not None:  # σ_ε² at a new input, whatever its count
+                    means.append(dist.mean.T)
+                    variances.append((dist.variance + self.likelihood.noise).T)
+                    continue
                 if include_noise:
                     dist = self.likelihood(dist)
                 means.append(dist.mean.T)
@@ -295,16 +341,21 @@ class DynamicsGP(GPEvidence, GPCheckpoint, gpytorch.models.ExactGP):
         return self
 
     def posterior_cache(self) -> GPPosteriorCache:
-        """(K + σ_ε²I)⁻¹ and β = (K + σ_ε²I)⁻¹y per output, for prediction at uncertain inputs."""
+        """(K + σ_ε²I)⁻¹ and β = (K + σ_ε²I)⁻¹y per output (σ_ε²I + C with per-point noise), at uncertain inputs."""
         theta = self.hyperparameters
+        extra = self.extra_noise
         with torch.no_grad():
             K = self.covar_module(self.train_inputs[0]).to_dense()  # E x n x n
-            K = K + theta.noise_variance[:, None, None] * torch.eye(
-                K.shape[-1], dtype=K.dtype, device=K.device
-            )
+            if extra is None:
+                K = K + theta.noise_variance[:, None, None] * torch.eye(
+                    K.shape[-1], dtype=K.dtype, device=K.device
+                )
+            else:
+                K = K + torch.diag_embed(theta.noise_variance[:, None] + extra)
             chol = psd_safe_cholesky(K)
             beta = torch.cholesky_solve(self.train_targets.unsqueeze(-1), chol).squeeze(-1)
             K_inv = torch.cholesky_inverse(chol)
         return GPPosteriorCache(inputs=self.train_x, K_inv=K_inv, beta=beta, hyperparameters=theta,
                                 outputs=self.outputs, state_dim=self.state_dim,
-                                constant_outputs=self.constant_outputs, constant_delta=self.constant_delta)
+                                constant_outputs=self.constant_outputs, constant_delta=self.constant_delta,
+                                extra_noise=None if extra is None else extra.detach().clone())

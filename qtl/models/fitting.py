@@ -37,6 +37,7 @@ class ModelFit(Protocol):
         previous: PreviousFit | None = None,
         outputs: Sequence[int] | None = None,
         state_dim: int | None = None,
+        extra_noise: Tensor | None = None,
     ) -> DynamicsGP:
         """θ_p by evidence maximisation on inputs `n x (F+U)` and targets Δ `n x E`, from ``start`` or the heuristic.
 
@@ -44,6 +45,8 @@ class ModelFit(Protocol):
         free rule, else None) then is the cold start of the restarts only. So a free-rule run's first fit
         starts from θ_s and each later one from θ_p_{i−1}, itself re-learned from θ_s. ``outputs``: the state
         dimensions the E targets are (default: all, 0..E−1), of a ``state_dim``-D state, recorded on the model.
+        ``extra_noise``: c `n x E`, tuple i of output e observed with noise σ_ε² + c_ei (source samples weighted by
+        relevance, :mod:`qtl.models.point_noise`); None: σ_ε² for every tuple.
         """
         ...
 
@@ -85,6 +88,7 @@ class ExactFit:
         previous: PreviousFit | None = None,
         outputs: Sequence[int] | None = None,
         state_dim: int | None = None,
+        extra_noise: Tensor | None = None,
     ) -> DynamicsGP:
         """The exact GP on inputs `n x (F+U)`, targets `n x E`, fitted from ``start`` (None: PILCO's heuristic).
 
@@ -94,7 +98,7 @@ class ExactFit:
         targets, split, start = _split(targets, outputs, start, previous)
         model = DynamicsGP(inputs, targets, hyperparameters=start, outputs=split.outputs, state_dim=state_dim,
                            constant_outputs=split.constant_outputs, constant_delta=split.constant_delta,
-                           dtype=inputs.dtype)
+                           extra_noise=_varying(extra_noise, split), dtype=inputs.dtype)
         warm = _warm_from(previous, model) if self.warm_start else None
         if warm is not None:
             model.fit_warm(warm.theta, warm.objective, restarts=self.restarts, max_iter=self.max_iter,
@@ -123,6 +127,13 @@ def _split(
     if start is not None and start.num_outputs == targets.shape[-1]:  # θ of every modelled output: the GP's rows
         start = start.select(torch.tensor(split.varying))
     return targets[:, split.varying], split, start
+
+
+def _varying(extra_noise: Tensor | None, split: OutputSplit) -> Tensor | None:
+    """The extra noise `n x E''` of the outputs a GP learns (None stays None)."""
+    if extra_noise is None or not split.constant_outputs:
+        return extra_noise
+    return extra_noise[:, split.varying]
 
 
 def _warm_from(previous: PreviousFit | None, model: DynamicsGP) -> PreviousFit | None:
@@ -164,6 +175,7 @@ class SparseFit:
         previous: PreviousFit | None = None,
         outputs: Sequence[int] | None = None,
         state_dim: int | None = None,
+        extra_noise: Tensor | None = None,
     ) -> DynamicsGP:
         """The sparse GP on inputs `n x (F+U)`, targets `n x E`; ``generator`` draws Z, then the restarts.
 
@@ -174,7 +186,8 @@ class SparseFit:
         model = SparseDynamicsGP(inputs, targets, hyperparameters=start, num_inducing=self.inducing,
                                  generator=generator, jitter=self.inducing_jitter, outputs=split.outputs,
                                  state_dim=state_dim, constant_outputs=split.constant_outputs,
-                                 constant_delta=split.constant_delta, dtype=inputs.dtype)
+                                 constant_delta=split.constant_delta, extra_noise=_varying(extra_noise, split),
+                                 dtype=inputs.dtype)
         warm = _warm_from(previous, model) if self.warm_start else None
         if warm is not None:
             inducing = warm.inducing if warm.num_points <= len(inputs) else None  # data only grew
@@ -212,6 +225,7 @@ class AutoFit:
         previous: PreviousFit | None = None,
         outputs: Sequence[int] | None = None,
         state_dim: int | None = None,
+        extra_noise: Tensor | None = None,
     ) -> DynamicsGP:
         """:class:`ExactFit` or, above ``sparse_above`` tuples, :class:`SparseFit` on inputs `n x (F+U)`."""
         if self.sparse_above is not None and len(inputs) > self.sparse_above:
@@ -222,7 +236,7 @@ class AutoFit:
         else:
             chosen = ExactFit(self.restarts, self.max_iter, self.warm_start)
         return chosen.fit(inputs, targets, start=start, generator=generator, previous=previous, outputs=outputs,
-                           state_dim=state_dim)
+                           state_dim=state_dim, extra_noise=extra_noise)
 
 
 def log_evidence(model: DynamicsGP) -> float:

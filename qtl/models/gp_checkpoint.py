@@ -19,7 +19,7 @@ class GPCheckpoint:
     def state(self) -> dict:
         """Everything needed to rebuild this model (data and θ), as tensors and primitives."""
         theta = self.hyperparameters
-        return {
+        state = {
             "format": CHECKPOINT_FORMAT,
             "version": CHECKPOINT_VERSION,
             "train_x": self.train_x.detach().cpu(),
@@ -32,6 +32,9 @@ class GPCheckpoint:
             "constant_outputs": list(self.constant_outputs),
             "constant_delta": self.constant_delta.detach().cpu(),
         }
+        if self.extra_noise is not None:  # per-point extra noise c `n x E` (source samples)
+            state["extra_noise"] = self.extra_noise.detach().T.cpu()
+        return state
 
     @classmethod
     def from_state(
@@ -56,7 +59,7 @@ class GPCheckpoint:
         )
         return cls(state["train_x"].to(device), state["train_y"].to(device), theta, outputs=state.get("outputs"),
                    state_dim=state.get("state_dim"), constant_outputs=state.get("constant_outputs", ()),
-                   constant_delta=state.get("constant_delta"), dtype=dtype)
+                   constant_delta=state.get("constant_delta"), extra_noise=state.get("extra_noise"), dtype=dtype)
 
     def save(self, path: str | os.PathLike) -> None:
         """Write data and θ to ``path`` (an ExactGP's state_dict alone lacks the data)."""

@@ -133,7 +133,9 @@ class GPEvidence:
                 self.prediction_strategy = None
                 part = self
             else:
-                part = type(self)(self.train_x, self.train_y[:, chosen], cold.select(chosen), dtype=self.train_x.dtype)
+                extra = None if self.extra_noise is None else self.extra_noise[chosen].T  # n x |chosen|
+                part = type(self)(self.train_x, self.train_y[:, chosen], cold.select(chosen), extra_noise=extra,
+                                  dtype=self.train_x.dtype)
             try:
                 part_value = part.fit(restarts=restarts, max_iter=max_iter, generator=generator)
             except RuntimeError as err:

@@ -16,6 +16,12 @@ which is the exact GP's form with (Z, β, K_mm⁻¹ − Σ⁻¹) in place of (X,
 posterior cache has that form, so moment matching and particles run through it unchanged, at
 O(m²) per step. With Z = X (and no jitter) the model is the exact GP.
 
+Per-point noise (``extra_noise`` c, as :class:`~qtl.models.DynamicsGP`'s; :mod:`qtl.models.point_noise`): tuple i
+observed with variance λ_i = σ² + c_i, Λ = diag(λ) in place of σ²I throughout: Σ = K_mm + K_mn Λ⁻¹ K_nm,
+β = Σ⁻¹ K_mn Λ⁻¹ y, v(x) unchanged in form (the same cache), and the bound log N(y | 0, Q_nn + Λ) −
+½ tr(Λ⁻¹ (K_nn − Q_nn)): the model of the rows scaled by λ_i^{-1/2} at unit noise (:mod:`qtl.models.collapsed_bound`).
+A new input's noise is σ².
+
 K_mm carries a fixed jitter δ = ``jitter`` · α² on its diagonal, in the bound and the prediction
 alike (the inducing values u observed with variance δ). Without it, learned Z that crowd the
 input space at the learned lengthscales make K_mm singular to working precision (eigenvalues
@@ -106,7 +112,7 @@ class SparseDynamicsGP(DynamicsGP):
     ``inducing_points``: Z `m x D` (default: ``num_inducing`` training inputs drawn without
     replacement by ``generator``; all of them when n <= m); ``jitter``: δ / α² on K_mm's
     diagonal (0: none, the model of Titsias 2009 as written). Everything else as
-    :class:`~qtl.models.DynamicsGP`: θ get/set, priors, fit, predict, posterior_cache.
+    :class:`~qtl.models.DynamicsGP`: θ get/set, priors, per-point ``extra_noise``, fit, predict, posterior_cache.
     """
 
     def __init__(
@@ -123,10 +129,12 @@ class SparseDynamicsGP(DynamicsGP):
         state_dim: int | None = None,
         constant_outputs: Sequence[int] = (),
         constant_delta: Tensor | None = None,
+        extra_noise: Tensor | None = None,
         dtype: torch.dtype = torch.float64,
     ) -> None:
         super().__init__(train_x, train_y, hyperparameters, outputs=outputs, state_dim=state_dim,
-                         constant_outputs=constant_outputs, constant_delta=constant_delta, dtype=dtype)
+                         constant_outputs=constant_outputs, constant_delta=constant_delta, extra_noise=extra_noise,
+                         dtype=dtype)
         if inducing_points is None:
             if num_inducing < 1:
                 raise ValueError(f"num_inducing must be >= 1, got {num_inducing}")
@@ -163,12 +171,12 @@ class SparseDynamicsGP(DynamicsGP):
         """Titsias' collapsed bound plus log priors, divided by n, per output `E`, with its gradient in closed form.
 
         The value of GPyTorch's marginal likelihood of this model (:meth:`gpytorch_log_evidence`) at about half
-        its cost (:mod:`qtl.models.collapsed_bound`).
+        its cost (:mod:`qtl.models.collapsed_bound`); with per-point noise σ² + c, the bound with Λ = σ²I + C.
         """
         kernel = self.scale_kernel
         bound = collapsed_bound(self.train_x, self.train_targets, self.covar_module.inducing_points,
                                 kernel.base_kernel.lengthscale.squeeze(-2), kernel.outputscale,
-                                self.likelihood.noise.squeeze(-1), self.jitter)
+                                self.likelihood.noise.squeeze(-1), self.jitter, self.extra_noise)
         return (bound + self.log_prior()) / self.train_x.shape[0]
 
     @property
@@ -273,7 +281,7 @@ class SparseDynamicsGP(DynamicsGP):
         return self.fit_objective
 
     def _factors(self) -> tuple[Tensor, Tensor, Tensor]:
-        """L_m (chol of K_mm + δI), A = L_m⁻¹ K_mn / σ and L_B (chol of B = I + A Aᵀ), per output."""
+        """L_m (chol of K_mm + δI), A = L_m⁻¹ K_mn Λ^{-1/2} (Λ = σ²I, or σ²I + C) and L_B (chol of B = I + A Aᵀ)."""
         theta = self.hyperparameters
         z = self.inducing_points
         kernel = self.scale_kernel
@@ -282,14 +290,24 @@ class SparseDynamicsGP(DynamicsGP):
             k_mm = jittered_inducing_covariance(k_mm, theta.signal_variance, self.jitter)
             k_mn = kernel(z.expand(self.num_outputs, *z.shape), self.train_inputs[0]).to_dense()  # E x m x n
             chol_m = psd_safe_cholesky(k_mm)
-            a = torch.linalg.solve_triangular(chol_m, k_mn, upper=False) / theta.noise_variance.sqrt()[:, None, None]
+            a = torch.linalg.solve_triangular(chol_m, k_mn, upper=False)
+            extra = self.extra_noise
+            if extra is None:
+                a = a / theta.noise_variance.sqrt()[:, None, None]
+            else:  # Λ = σ²I + C: K_mn Λ⁻¹ K_nm = (L_m A)(L_m A)ᵀ with A's columns over √λ
+                a = a * (theta.noise_variance[:, None] + extra).rsqrt()[:, None, :]
             eye = torch.eye(z.shape[0], dtype=a.dtype, device=a.device)
             chol_b = psd_safe_cholesky(eye + a @ a.mT)
         return chol_m, a, chol_b
 
     def posterior_cache(self) -> GPPosteriorCache:
-        """Z, β = σ⁻² Σ⁻¹ K_mn y and K_mm⁻¹ − Σ⁻¹ per output: the exact GP's cache form at the inducing inputs."""
+        """Z, β = σ⁻² Σ⁻¹ K_mn y and K_mm⁻¹ − Σ⁻¹ per output: the exact GP's cache form at the inducing inputs.
+
+        With per-point noise Λ = σ²I + C: Σ = K_mm + K_mn Λ⁻¹ K_nm and β = Σ⁻¹ K_mn Λ⁻¹ y (``extra_noise`` C `E x n`
+        kept in the cache).
+        """
         chol_m, a, chol_b = self._factors()
+        extra = self.extra_noise
         noise_std = self.hyperparameters.noise_variance.sqrt()
         eye = torch.eye(a.shape[-2], dtype=a.dtype, device=a.device)
         with torch.no_grad():
@@ -299,12 +317,17 @@ class SparseDynamicsGP(DynamicsGP):
             left = torch.linalg.solve_triangular(chol_m.mT, middle, upper=True)  # L_m⁻ᵀ (I − B⁻¹)
             k_inv = torch.linalg.solve_triangular(chol_m.mT, left.mT, upper=True).mT
             k_inv = 0.5 * (k_inv + k_inv.mT)
-            # β = σ⁻² Σ⁻¹ K_mn y = L_m⁻ᵀ B⁻¹ A y / σ.
-            ay = (a @ self.train_targets[..., None]) / noise_std[:, None, None]  # E x m x 1
+            # β = σ⁻² Σ⁻¹ K_mn y = L_m⁻ᵀ B⁻¹ A y / σ (per point: Σ⁻¹ K_mn Λ⁻¹ y = L_m⁻ᵀ B⁻¹ A Λ^{-1/2} y).
+            if extra is None:
+                ay = (a @ self.train_targets[..., None]) / noise_std[:, None, None]  # E x m x 1
+            else:
+                point = self.hyperparameters.noise_variance[:, None] + extra  # E x n
+                ay = a @ (self.train_targets * point.rsqrt())[..., None]
             beta = torch.linalg.solve_triangular(chol_m.mT, torch.cholesky_solve(ay, chol_b), upper=True)
             # Pathwise samples (Wilson et al. 2020, sparse form): f = f̃ + k(·, Z) K_mm⁻¹ (u − f̃(Z) − ε̃), u ~ q(u),
             # ε̃ ~ N(0, δI) the inducing values' jitter (K_mm here is K_mm + δI), i.e. v = β − K_mm⁻¹ f̃(Z) + R ξ with
-            # R Rᵀ = K_mm⁻¹ S_u K_mm⁻¹ + δ K_mm⁻² = Σ⁻¹ + δ K_mm⁻² = L_m⁻ᵀ (B⁻¹ + δ L_m⁻¹ L_m⁻ᵀ) L_m⁻¹.
+            # R Rᵀ = K_mm⁻¹ S_u K_mm⁻¹ + δ K_mm⁻² = Σ⁻¹ + δ K_mm⁻² = L_m⁻ᵀ (B⁻¹ + δ L_m⁻¹ L_m⁻ᵀ) L_m⁻¹
+            # (S_u = K_mm Σ⁻¹ K_mm, with per-point noise too: Σ and B then carry Λ⁻¹).
             # No jitter: R = L_m⁻ᵀ L_B⁻ᵀ; else R = L_m⁻ᵀ G, G Gᵀ = B⁻¹ + δ L_m⁻¹ L_m⁻ᵀ (eigenvalues in (0, 2]).
             prior_inv = torch.cholesky_inverse(chol_m)
             if self.jitter == 0:
@@ -318,7 +341,8 @@ class SparseDynamicsGP(DynamicsGP):
                                 hyperparameters=self.hyperparameters, prior_inv=0.5 * (prior_inv + prior_inv.mT),
                                 update_root=update_root, outputs=self.outputs,
                                 state_dim=self.state_dim, constant_outputs=self.constant_outputs,
-                                constant_delta=self.constant_delta)
+                                constant_delta=self.constant_delta,
+                                extra_noise=None if extra is None else extra.detach().clone())
 
     def predict(self, x: Tensor, *, include_noise: bool = False) -> tuple[Tensor, Tensor]:
         """Predictive mean and variance of Δ at deterministic inputs `k x D` (Eq. 1-2, sparse form): `k x E` each."""
@@ -340,7 +364,9 @@ class SparseDynamicsGP(DynamicsGP):
         return mean.T, var.T
 
     def exact(self) -> DynamicsGP:
-        """The exact GP on the same data with the same θ (e.g. for leave-one-out predictions)."""
+        """The exact GP on the same data with the same θ and per-point noise (e.g. for leave-one-out predictions)."""
+        extra = self.extra_noise
         return DynamicsGP(self.train_x, self.train_y, self.hyperparameters, outputs=self.outputs,
                           state_dim=self.state_dim, constant_outputs=self.constant_outputs,
-                          constant_delta=self.constant_delta, dtype=self.train_x.dtype)
+                          constant_delta=self.constant_delta, extra_noise=None if extra is None else extra.T,
+                          dtype=self.train_x.dtype)

@@ -41,6 +41,8 @@ def _tensors(cache: GPPosteriorCache) -> dict[str, Tensor]:
     if cache.constant_outputs:  # outputs of a deterministic Δ (qtl.models.constant): their dims `C` and Δ `C`
         dims = torch.tensor(cache.constant_outputs, dtype=torch.long, device=cache.beta.device)
         tensors |= {"constant_outputs": dims, "constant_delta": cache.constant_delta.to(cache.beta)}
+    if cache.extra_noise is not None and cache.prior_inv is None:  # an exact GP's per-tuple noise σ_ε² + c (pathwise)
+        tensors["extra_noise"] = cache.extra_noise  # E x n
     if cache.prior_inv is not None:  # a sparse GP's: its pathwise update (m inducing inputs as n)
         tensors |= {"prior_inv": cache.prior_inv, "update_root": cache.update_root}  # E x m x m each
     return tensors
@@ -54,7 +56,8 @@ def cache_tensors(model: DynamicsSource) -> dict[str, Tensor]:
         return _tensors(model)
     caches = list(model)
     shapes = {(c.inputs.shape, c.K_inv.shape, c.prior_inv is None, c.outputs, c.state_dim, c.constant_outputs,
-               None if c.constant_delta is None else tuple(c.constant_delta.tolist())) for c in caches}
+               None if c.constant_delta is None else tuple(c.constant_delta.tolist()), c.extra_noise is None)
+              for c in caches}
     if len(shapes) != 1:
         raise ValueError(f"stacked GP caches must share n, D, E, outputs (constant ones and their Δ) and kind "
                          "(exact or sparse); got "

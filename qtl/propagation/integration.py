@@ -263,7 +263,7 @@ def select_outputs(data: dict[str, Tensor], outputs: Sequence[int]) -> dict[str,
         raise ValueError(f"outputs {missing} are not among the GP's outputs {list(held)}")
     index = torch.tensor([held.index(d) for d in outputs], dtype=torch.long, device=data["beta"].device)
     output_dim = {"K_inv": -3, "prior_inv": -3, "update_root": -3, "beta": -2, "lengthscales": -2,
-                  "signal_variance": -1, "noise_variance": -1}
+                  "signal_variance": -1, "noise_variance": -1, "extra_noise": -2}
     cut = {k: v.index_select(output_dim[k], index) if k in output_dim else v for k, v in data.items()}
     cut["outputs"] = torch.tensor(list(outputs), dtype=torch.long, device=data["beta"].device)
     return cut

@@ -186,7 +186,7 @@ class Particles:
         self._data_sq = self._data.square().sum(-1)  # ... x E x n
         self._beta = data["beta"]
         gp = GPTensors(self._data, self._data_sq, self._beta, data["K_inv"], data["signal_variance"],
-                       data["noise_variance"], data.get("prior_inv"), data.get("update_root"))
+                       data["noise_variance"], data.get("prior_inv"), data.get("update_root"), data.get("extra_noise"))
         # What the pathwise functions are evaluated with: float32 with path_dtype=float32 (else the propagation's).
         self._eval_dtype = torch.float32 if self.path_dtype == "float32" else self.dtype
         self.sampler: MarginalSampler | PathwiseSampler = MarginalSampler(gp, include_noise=include_noise)

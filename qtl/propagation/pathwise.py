@@ -86,6 +86,7 @@ def matheron_paths(
     dtype: torch.dtype | None = None,
     prior_inv: Tensor | None = None,
     update_root: Tensor | None = None,
+    extra_noise: Tensor | None = None,
 ) -> MatheronPaths:
     """P posterior functions per output by Matheron's rule (Wilson et al. 2020, Eq. 13).
 
@@ -97,7 +98,8 @@ def matheron_paths(
     (K + σ_ε²I)⁻¹ stays in ``data``'s dtype and v is cast last. Not differentiable (θ and data fixed).
     A sparse GP (``data`` its inducing inputs Z, ``prior_inv`` K_mm⁻¹ and ``update_root`` R `... x E x m x m`
     given): v_p = β − K_mm⁻¹ f̃_p(Z) + R ξ_p (Wilson et al. 2020, sparse GPs: f̃ + k(·, Z) K_mm⁻¹ (u − f̃(Z)), u ~ q(u)),
-    with ``draw``'s update noise as ξ.
+    with ``draw``'s update noise as ξ. ``extra_noise`` c `... x E x n`: tuple i's noise is σ_ε² + c_i (exact GP with
+    source samples), so ε_p ~ N(0, σ_ε²I + C) and ``K_inv`` = (K + σ_ε²I + C)⁻¹.
     """
     like = {"device": data.device, "dtype": data.dtype}
     dtype = data.dtype if dtype is None else dtype
@@ -110,7 +112,10 @@ def matheron_paths(
     angle = data.to(dtype) @ frequencies.mT + phases[..., None, :]  # ... x E x n x L
     prior_at_data = (torch.cos(angle) @ weights.mT).to(data.dtype)  # f̃_p(X): ... x E x n x P
     if prior_inv is None:
-        residual = prior_at_data + noise_variance.sqrt()[..., None, None] * update_noise  # f̃_p(X) + ε_p
+        if extra_noise is None:
+            residual = prior_at_data + noise_variance.sqrt()[..., None, None] * update_noise  # f̃_p(X) + ε_p
+        else:
+            residual = prior_at_data + (noise_variance[..., None] + extra_noise).sqrt()[..., None] * update_noise
         update = beta[..., :, None] - K_inv @ residual  # v_p = β − (K + σ_ε²I)⁻¹ (f̃_p(X) + ε_p): ... x E x n x P
     else:  # v_p = β − K_mm⁻¹ f̃_p(Z) + R ξ_p: ... x E x m x P
         update = beta[..., :, None] - prior_inv @ prior_at_data + update_root @ update_noise

@@ -47,6 +47,7 @@ class GPTensors(NamedTuple):
     noise_variance: Tensor
     prior_inv: Tensor | None = None  # a sparse GP's
     update_root: Tensor | None = None
+    extra_noise: Tensor | None = None  # c `... x E x n`: the training tuples' noise is σ_ε² + c (source samples)
 
 
 class MarginalSampler:
@@ -120,7 +121,8 @@ class PathwiseSampler:
             num_outputs, num_points, input_dim = gp.data.shape[-3:]
             features = draw_features(gen, num_outputs, input_dim, num_points, self.num_particles, self.num_features)
             paths = matheron_paths(features, gp.data, gp.beta, gp.K_inv, gp.signal_variance, gp.noise_variance,
-                                   dtype=self.eval_dtype, prior_inv=gp.prior_inv, update_root=gp.update_root)
+                                   dtype=self.eval_dtype, prior_inv=gp.prior_inv, update_root=gp.update_root,
+                                   extra_noise=gp.extra_noise)
             self._functions = (draw, paths)
         return self._functions[1]
 

@@ -9,7 +9,7 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 import torch
-from torch import nn
+from torch import Tensor, nn
 
 from qtl.errors import TransferError
 from qtl.features import AngleFeatures
@@ -17,6 +17,14 @@ from qtl.models import DynamicsGP, GPHyperparameters
 from qtl.task import Task
 from qtl.transfer.compliance import DEFAULT_COMPLIANCE, compliance_value
 from qtl.transfer.rules import HyperparameterRule
+from qtl.transfer.samples import (
+    EFFECTIVE_SAMPLES,
+    RELEVANCE,
+    SAMPLE_COLUMNS,
+    SOURCE_SAMPLES,
+    SourceSamples,
+    WeightedSamples,
+)
 from qtl.transfer.source import SourceRun, source_dirs
 
 log = logging.getLogger(__name__)
@@ -26,6 +34,7 @@ log = logging.getLogger(__name__)
 SELECT_MODES = ("compliance", "mixture")
 SOURCE_COMPLIANCE_PREFIX = "compliance"  # metrics.csv: Λ_k of source k (Eq. 14), runs with several sources only
 SELECTED_SOURCE = "selected_source"  # metrics.csv: k of the source θ_s and ψ_s are taken from (several sources)
+SAMPLE_STATE = ("inputs", "targets", "weights", "judged_noise")  # a checkpoint's record of the last source samples
 
 
 class TransferPlan:
@@ -41,6 +50,11 @@ class TransferPlan:
     (or by ``transfer.initial_policy``'s ψ_s); at the first model Λ_k (Eq. 14) of every source k chooses
     ``source``, by ``transfer.select``; from then on the plan is the single-source one with that source's ψ_s and
     θ_s (or the mixture's θ_s). Λ_k is computed at every model.
+
+    ``transfer.samples=relevance``: up to ``transfer.max_source_samples`` tuples of the source (the chosen one, from
+    the first model after the choice) join each model's data with noise σ_ε²/w, w their relevance under the target's
+    tuples at the previous model's θ (θ_s at the first) (:mod:`qtl.transfer.samples`); none once the compliance gate
+    has dropped the transfer.
     """
 
     def __init__(
@@ -64,6 +78,9 @@ class TransferPlan:
         self.compliance_name = str(cfg.get("compliance") or DEFAULT_COMPLIANCE)
         self.bandwidth = str(cfg.get("compliance_bandwidth") or "scott")
         self.select = str(cfg.get("select") or "compliance")
+        self.samples = str(cfg.get("samples") or "none")
+        self.max_source_samples = int(cfg.get("max_source_samples") or 1)
+        self._features, self._dtype = features, dtype
         source = cfg.get("source")
         dirs = [] if source is None else source_dirs(source if isinstance(source, str) else list(source))
         initial = cfg.get("initial_policy")
@@ -95,6 +112,7 @@ class TransferPlan:
         self.theta_outputs = self.outputs  # the state dimensions of θ_{i−1}'s rows
         self.fallen_back = False  # the compliance gate switched this run to PILCO
         self._pilco_psi: dict[str, torch.Tensor] = {}  # PILCO's ψ_0, where a gated run's search starts instead of ψ_s
+        self.weighted: WeightedSamples | None = None  # the source tuples of the last model, with their relevance
 
     # -- line 1: ψ ----------------------------------------------------------------------------
 
@@ -171,6 +189,40 @@ class TransferPlan:
                  ", ".join(f"{k}: {v:.4f}" for k, v in enumerate(values)), self.source.path, self.select)
         return best
 
+    # -- line 12: source samples in the data ------------------------------------------------
+
+    def source_samples(self, target_x: Tensor, target_y: Tensor) -> WeightedSamples | None:
+        """The source's tuples for the next model with their relevance under the target's `n x D`, `n x E` tuples.
+
+        None unless ``transfer.samples=relevance`` and a source is chosen and not dropped by the gate. Judged at the
+        previous model's θ (θ_s at the first model).
+        """
+        if self.samples != "relevance" or self.source is None or self.fallen_back:
+            return None
+        if self.theta is not None:
+            theta, outputs = self.theta, self.theta_outputs
+        else:
+            theta, outputs = self.theta_s, self.theta_s_outputs
+        self.weighted = self._source_tuples().weighted(target_x, target_y, theta, outputs)
+        return self.weighted
+
+    def _source_tuples(self) -> SourceSamples:
+        """The chosen source's tuples as GP training pairs of the modelled outputs, thinned evenly."""
+        return SourceSamples.of(self.source.dataset, self._features, self.outputs, self.max_source_samples,
+                                self._dtype, self.device)
+
+    def sample_columns(self) -> list[str]:
+        """The ``metrics.csv`` columns of the source samples: none unless ``transfer.samples=relevance``."""
+        return list(SAMPLE_COLUMNS) if self.samples == "relevance" else []
+
+    def sample_row(self) -> dict[str, float]:
+        """The source samples of the last model (:meth:`sample_columns`): 0 samples and NaN w when it had none."""
+        if self.samples != "relevance":
+            return {}
+        if self.weighted is None:
+            return {SOURCE_SAMPLES: 0.0, RELEVANCE: math.nan, EFFECTIVE_SAMPLES: 0.0}
+        return self.weighted.row()
+
     def compliance_columns(self) -> list[str]:
         """The ``metrics.csv`` columns of Λ_k per source and the chosen k: none with a single source."""
         if not self.several:
@@ -239,6 +291,8 @@ class TransferPlan:
         }
         if self.several and self.selected is not None:
             state["chosen_by"] = list(self._chosen_compliances)  # Λ_k at the first model: the choice, and its θ_s
+        if self.weighted is not None:  # the last model's source tuples and their relevance
+            state["samples"] = {key: getattr(self.weighted, key).cpu() for key in SAMPLE_STATE}
         return state
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
@@ -249,6 +303,9 @@ class TransferPlan:
         self.fallen_back = bool(state["fallen_back"])
         if self.several and state.get("chosen_by") is not None:
             self.choose(state["chosen_by"])
+        samples = state.get("samples")
+        self.weighted = None if samples is None else WeightedSamples(
+            *(samples[key].to(dtype=self._dtype, device=self.device) for key in SAMPLE_STATE))
 
     def _modelled(self, theta: GPHyperparameters) -> GPHyperparameters:
         """``theta`` on the plan's device, cut to the modelled outputs if it holds all D (stored before issue 63)."""
@@ -260,7 +317,9 @@ class TransferPlan:
         """What is transferred from where, one line."""
         if not self.sources:
             return "no transfer (PILCO)"
-        what = [w for w, on in (("θ_s", self.transfer_theta), ("ψ_s", self.transfer_policy)) if on] or ["nothing"]
+        what = [w for w, on in (("θ_s", self.transfer_theta), ("ψ_s", self.transfer_policy),
+                                (f"up to {self.max_source_samples} source tuples weighted by relevance",
+                                 self.samples == "relevance")) if on] or ["nothing"]
         if self.several:
             listed = "; ".join(f"{k}: {run.path} (episode {run.episode}, task {run.task.name})"
                                for k, run in enumerate(self.sources))

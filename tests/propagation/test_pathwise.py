@@ -17,7 +17,7 @@ from qtl.errors import UserError
 from qtl.features import AngleFeatures
 from qtl.gaussian import Gaussian
 from qtl.kernels.engine import Engine
-from qtl.models import GPPosteriorCache, SparseDynamicsGP
+from qtl.models import DynamicsGP, GPPosteriorCache, SparseDynamicsGP
 from qtl.policies import RBFPolicy, SquashedPolicy
 from qtl.propagation import Particles
 from qtl.propagation.gp_cache import cache_tensors
@@ -577,3 +577,26 @@ def test_bad_path_dtype_is_a_user_error(gp_factory):
         build(tiny_config("propagation=particles", "propagation.path_dtype=float16"))
     parts = build(tiny_config("propagation=particles", "propagation.path_dtype=float32"))
     assert factory_keywords(parts.make_propagator)["path_dtype"] == "float32"
+
+
+def test_functions_of_a_gp_with_per_tuple_noise_converge_to_its_posterior(gp_factory, mc):
+    # Source samples of relevance w have noise σ_ε² + c (qtl.models.point_noise): ε_p ~ N(0, σ_ε²I + C) in the update,
+    # so over draws the functions' moments are that GP's posterior (its K_inv is (K + σ_ε²I + C)⁻¹).
+    gp = gp_factory(30, 2, 1, seed=12)
+    extra = torch.linspace(0.0, 0.05, 30, dtype=DTYPE)[:, None].expand(-1, 2)
+    weighted = DynamicsGP(gp.train_x, gp.train_y, gp.hyperparameters, extra_noise=extra)
+    cache = weighted.posterior_cache()
+    theta = cache.hyperparameters
+    data, _, _ = scaled(cache)
+    draws = [draw_features(torch.Generator().manual_seed(seed), 2, data.shape[-1], 30, 200, 64) for seed in range(300)]
+    draw = FeatureDraw(*(torch.stack(parts) for parts in zip(*draws, strict=True)))
+    paths = matheron_paths(draw, data, cache.beta, cache.K_inv, theta.signal_variance, theta.noise_variance,
+                           extra_noise=cache.extra_noise)
+    points = torch.tensor([[0.1, -0.2, 0.3], [0.5, 0.4, -0.6], [-1.0, 0.8, 0.0]], dtype=DTYPE)
+    mean, cov = exact_posterior(cache, points)
+    values = values_at(cache, paths, points)
+    mc.assert_mean(mean, values.mean(1), "mean over draws")
+    mc.assert_mean(cov, centred_products(values, mean).mean(1), "covariance over draws")
+    # Without the extra noise in ε_p the spread is wrong where c is large: the check above can fail.
+    plain = matheron_paths(draw, data, cache.beta, cache.K_inv, theta.signal_variance, theta.noise_variance)
+    assert not torch.allclose(values_at(cache, plain, points).var(1).mean(0), values.var(1).mean(0), rtol=1e-3)

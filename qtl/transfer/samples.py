@@ -1,0 +1,114 @@
+"""Source samples weighted by relevance: source tuples in the target GP's data with noise σ_ε² / w (issue 65).
+
+The paper's conclusion names the step beyond θ: tuples of the source that adjust the target's posterior of the
+transition function. Lazaric et al. (2008) weigh each source sample by its *relevance* to the target's own tuples;
+qtl uses the GP-native form of that idea. With the target GP f_T fitted on the target's tuples alone at the current
+θ, the relevance of source tuple (x_i, Δ_i) for output e is its predictive density over the density's peak:
+
+    w_ei = N(Δ_ei; μ_e(x_i), v_e(x_i) + σ_e²) / N(μ_e(x_i); μ_e(x_i), v_e(x_i) + σ_e²) = exp(−½ z_ei²),
+
+z_ei the tuple's standardised residual under f_T. Where the target has no data near x_i, v_e ≈ α² and the source
+tuple is trusted (w → 1: it fills in where the target has not been); where the target's tuples contradict it,
+z_ei is large and w → 0. The tuple then joins the target's data with noise σ_e² + σ̂_e² (1/w_ei − 1), σ̂_e² the noise
+of the judging θ, so σ_e²/w_ei there (:mod:`qtl.models.point_noise`): w = 1 pools it, w → 0 leaves the target's
+data alone, for the posterior and for evidence maximisation of θ alike. Per output, since the
+outputs are independent GPs. The weights are recomputed at every model, so the target's data take over as they grow.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from qtl.data import TransitionDataset, gp_training_pairs
+from qtl.models import DynamicsGP, GPHyperparameters
+
+# transfer.samples: no source tuples (θ and ψ only), or source tuples weighted by relevance.
+SAMPLE_MODES = ("none", "relevance")
+# The floor of w: σ_ε² / w stays finite and K well conditioned; such a tuple moves the posterior by ~w of its residual.
+MIN_RELEVANCE = 1e-8
+# metrics.csv columns (runs with transfer.samples=relevance only): the source tuples in the GP's data, the mean w over
+# them and the outputs, and Σ_i w_i averaged over the outputs (the effective number of source tuples).
+SOURCE_SAMPLES = "source_samples"
+RELEVANCE = "relevance"
+EFFECTIVE_SAMPLES = "effective_samples"
+SAMPLE_COLUMNS = (SOURCE_SAMPLES, RELEVANCE, EFFECTIVE_SAMPLES)
+
+
+def relevance(target_x: Tensor, target_y: Tensor, source_x: Tensor, source_y: Tensor,
+              theta: GPHyperparameters) -> Tensor:
+    """w_ei = exp(−½ z_ei²) of source tuples `N x D`, `N x E` under the target GP at θ on `n x D`, `n x E`: `N x E`."""
+    target = DynamicsGP(target_x, target_y, theta, dtype=target_x.dtype)
+    mean, variance = target.predict(source_x, include_noise=True)
+    return torch.exp(-0.5 * (source_y - mean).square() / variance).clamp_min(MIN_RELEVANCE)
+
+
+@dataclass(frozen=True)
+class WeightedSamples:
+    """Source tuples for the target's GP: inputs `N x D`, targets Δ `N x E` (modelled outputs), relevance `N x E`.
+
+    ``judged_noise``: σ̂_ε² `E`, the noise of the θ the relevance was computed at.
+    """
+
+    inputs: Tensor
+    targets: Tensor
+    weights: Tensor
+    judged_noise: Tensor
+
+    @property
+    def extra_noise(self) -> Tensor:
+        """c = σ̂_ε² (1/w − 1) `N x E`: noise σ_ε² + c, σ_ε²/w at the judging θ (:mod:`qtl.models.point_noise`)."""
+        return self.judged_noise * (self.weights.reciprocal() - 1)
+
+    def row(self) -> dict[str, float]:
+        """The ``metrics.csv`` columns of these samples: count, mean w, Σ w averaged over the outputs."""
+        return {SOURCE_SAMPLES: float(len(self.inputs)), RELEVANCE: float(self.weights.mean()),
+                EFFECTIVE_SAMPLES: float(self.weights.sum(0).mean())}
+
+
+@dataclass(frozen=True)
+class SourceSamples:
+    """Up to ``max_samples`` tuples of a source run's data, evenly spaced over it: inputs `N x D`, targets `N x E`.
+
+    ``indices`` `N`: which of the source's tuples (in its dataset's order); ``outputs``: the state dimensions of the
+    target columns (the target's modelled outputs).
+    """
+
+    inputs: Tensor
+    targets: Tensor
+    indices: Tensor
+    outputs: tuple[int, ...]
+
+    @classmethod
+    def of(cls, dataset: TransitionDataset, features: Callable[[Tensor], Tensor], outputs: Sequence[int],
+           max_samples: int, dtype: torch.dtype = torch.float64,
+           device: torch.device | str = "cpu") -> SourceSamples:
+        """The tuples of ``dataset`` as GP training pairs, thinned evenly to ``max_samples`` (all if fewer)."""
+        inputs, targets = gp_training_pairs(dataset, features, dtype, device)
+        total = len(inputs)
+        indices = torch.linspace(0, total - 1, min(total, int(max_samples)), dtype=torch.float64).round().long()
+        indices = torch.unique(indices)
+        outputs = tuple(int(d) for d in outputs)
+        return cls(inputs[indices.to(inputs.device)], targets[:, list(outputs)][indices.to(inputs.device)], indices,
+                   outputs)
+
+    def weighted(self, target_x: Tensor, target_y: Tensor, theta: GPHyperparameters,
+                 theta_outputs: Sequence[int]) -> WeightedSamples:
+        """The samples with their relevance under the target's tuples `n x D`, `n x E` at θ (rows ``theta_outputs``).
+
+        An output θ has no row for (the last model found its Δ constant: no GP to judge by) keeps w = 1.
+        """
+        weights = torch.ones_like(self.targets)
+        noise = torch.zeros(len(self.outputs), dtype=self.targets.dtype, device=self.targets.device)
+        columns = [self.outputs.index(d) for d in theta_outputs if d in self.outputs]
+        rows = [k for k, d in enumerate(theta_outputs) if d in self.outputs]
+        if columns:
+            judged = theta.select(torch.tensor(rows)) if len(rows) != theta.num_outputs else theta
+            judged = judged.to(dtype=target_x.dtype, device=target_x.device)
+            weights[:, columns] = relevance(target_x, target_y[:, columns], self.inputs, self.targets[:, columns],
+                                            judged)
+            noise[columns] = judged.noise_variance.to(noise)
+        return WeightedSamples(self.inputs, self.targets, weights, noise)
