@@ -8,14 +8,17 @@ import math
 import numpy as np
 import pytest
 import torch
+from scipy import stats
 
 from qtl.constraints import (
     Constraint,
+    bivariate_normal_cdf,
     constrained_return,
     crossed,
     gaussian_return,
     half_survival_step,
     inside_probability,
+    lag_inside_probability,
     particle_return,
     soft_inside,
 )
@@ -161,3 +164,47 @@ def test_from_config_reads_a_task_entry():
     assert c == Constraint(dim=2, low=-1.0, high=None, kind="penalty", weight=3.0)
     assert isinstance(c.low, float) and isinstance(c.weight, float)
     assert Constraint.from_config({"dim": 0, "high": 1.0}) == Constraint(dim=0, high=1.0)
+
+
+def test_the_bivariate_normal_cdf_matches_scipy():
+    grid = [(h, k, rho) for rho in (-0.9999, -0.9, -0.3, 0.0, 0.5, 0.95, 0.999, 0.9999)
+            for h in (-3.0, -0.2, 0.0, 1.5, 4.0) for k in (-2.5, 0.1, 2.0, 40.0)]
+    h, k, rho = (torch.tensor(column, dtype=torch.float64) for column in zip(*grid, strict=True))
+    got = bivariate_normal_cdf(h, k, rho)
+    expected = torch.tensor([stats.multivariate_normal([0, 0], [[1, r], [r, 1]]).cdf([a, b]) for a, b, r in grid],
+                            dtype=torch.float64)
+    torch.testing.assert_close(got, expected, rtol=0, atol=1e-8)
+
+
+def test_gradcheck_of_the_bivariate_normal_cdf():
+    args = (torch.tensor([-0.7, 0.3, 1.2], dtype=torch.float64, requires_grad=True),
+            torch.tensor([0.4, -1.1, 1.0], dtype=torch.float64, requires_grad=True),
+            torch.tensor([0.2, -0.6, 0.97], dtype=torch.float64, requires_grad=True))
+    assert torch.autograd.gradcheck(bivariate_normal_cdf, args)
+
+
+@pytest.mark.parametrize("constraint", [Constraint(dim=0, low=-0.3, high=0.6), Constraint(dim=0, high=0.1)])
+def test_the_pair_probability_matches_monte_carlo(constraint):
+    # (x_{t−1,0}, x_{t,0}) from a 2-step joint Gaussian; P(both inside) against 400k draws.
+    cov = torch.tensor([[0.2, 0.05, 0.17, 0.0], [0.05, 0.3, 0.0, 0.1], [0.17, 0.0, 0.25, 0.02],
+                        [0.0, 0.1, 0.02, 0.4]], dtype=torch.float64)  # [x_{t−1}, x_t], 2-D each
+    mean = torch.tensor([0.1, -0.2, 0.3, 0.0], dtype=torch.float64)
+    before, after = Gaussian(mean[:2], cov[:2, :2]), Gaussian(mean[2:], cov[2:, 2:])
+    p = lag_inside_probability(constraint, before, after, cov[:2, 2:])
+    draws = torch.distributions.MultivariateNormal(mean, cov).sample((400_000,))
+    both = (torch.as_tensor(constraint.contains(draws[:, :2].numpy()))
+            & torch.as_tensor(constraint.contains(draws[:, 2:].numpy()))).double()
+    assert (p - both.mean()).abs() <= mc_tolerance(p), (p, both.mean())
+
+
+def test_the_markov_survival_is_the_product_for_uncorrelated_steps():
+    stop = Constraint(dim=0, low=-0.5, high=0.4)
+    gen = torch.Generator().manual_seed(0)
+    mean = 0.3 * torch.randn(2, 5, 2, generator=gen, dtype=torch.float64)  # batch 2, H = 5, D = 2
+    cov = torch.diag_embed(0.1 + torch.rand(2, 5, 2, generator=gen, dtype=torch.float64))
+    rewards = torch.rand(2, 5, generator=gen, dtype=torch.float64)
+    states = Gaussian(mean, cov)
+    product = gaussian_return([stop], rewards, states)
+    markov = gaussian_return([stop], rewards, states, lag_cov=torch.zeros_like(cov))
+    torch.testing.assert_close(markov[1], product[1], rtol=1e-10, atol=1e-12)
+    torch.testing.assert_close(markov[0], product[0], rtol=1e-10, atol=1e-12)

@@ -35,6 +35,12 @@ class MomentMatchingConfig(PropagationConfig):
         default="delta", metadata=doc(INTEGRATION_HELP + "; speed evaluates the GP on the modelled outputs only "
                                       "(fewer output pairs: faster), its moments exact"),
     )
+    survival: str = field(
+        default="markov",
+        metadata=doc("markov | product: with terminate constraints, the probability of having stayed inside from each "
+                     "consecutive pair's bivariate Gaussian (markov), or the product of the steps' marginals "
+                     "(product, Safe-PILCO's; pessimistic)"),
+    )
 
 
 @dataclass

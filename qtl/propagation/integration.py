@@ -69,6 +69,10 @@ class DeltaIntegration:
                              f"{list(outputs)} of {self.state_dim}: fit it on all of them")
         return self, data
 
+    def lag_covariance(self, cov: Tensor, cov_x_delta: Tensor) -> Tensor:
+        """cov(x_t, x_{t+1}) = Σ + C `... x D x D` from Σ and C = cov[x_t, Δ] `... x D x D`."""
+        return cov + cov_x_delta
+
     def moment_terms(
         self, mean: Tensor, cov: Tensor, delta_mean: Tensor, delta_cov: Tensor, cov_x_delta: Tensor
     ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
@@ -117,6 +121,10 @@ class LinearIntegration:
             return self, select_outputs(data, self.outputs)
         raise ValueError(f"the step models outputs {list(self.outputs)}, the GP outputs {list(outputs)}: fit the "
                          "GP on the step's outputs (or on all of them)")
+
+    def lag_covariance(self, cov: Tensor, cov_x_delta: Tensor) -> Tensor:
+        """cov(x_t, x_{t+1}) = Σ A + C J `... x D x D` from Σ `... x D x D` and C = cov[x_t, Δ] `... x D x E'`."""
+        return cov @ self.advance + cov_x_delta @ self.scatter
 
     def moment_terms(
         self, mean: Tensor, cov: Tensor, delta_mean: Tensor, delta_cov: Tensor, cov_x_delta: Tensor

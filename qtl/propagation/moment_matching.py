@@ -29,7 +29,7 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
-from qtl.constraints import Constraint, gaussian_return
+from qtl.constraints import SURVIVALS, Constraint, gaussian_return, terminating
 from qtl.errors import UserError
 from qtl.gaussian import Gaussian, GaussianMap, MomentMatch, batch_matmul, full_batch, symmetrize
 from qtl.kernels import SEKernelMoments
@@ -58,14 +58,18 @@ class MomentMatching:
     GP's modelled outputs only, positions integrated from their velocities; needs ``kinematics``: positions,
     velocities, period T) or a :class:`~qtl.propagation.integration.LinearIntegration` (its A, J and outputs).
     ``constraints``: the task's state bounds (:mod:`qtl.constraints`): the return weights each step by the
-    survival S_t = Π_{τ≤t} p_τ (terminate) and subtracts w (1 − p_t) (penalty), p_t from x_t's marginals.
+    survival S_t (terminate) and subtracts w (1 − p_t) (penalty), p_t from x_t's marginals. ``survival``: ``markov``
+    (S_t from each consecutive pair's bivariate Gaussian, the lag-one covariance of the step) or ``product``
+    (S_t = Π_{τ≤t} p_τ, Safe-PILCO's; :mod:`qtl.constraints`).
     """
 
     @staticmethod
-    def check_settings(integration: str = "delta", **_: object) -> None:
+    def check_settings(integration: str = "delta", survival: str = "markov", **_: object) -> None:
         """The settings, checked before any work (``qtl.build`` calls it): a UserError naming what to fix."""
         if integration not in INTEGRATION:
             raise UserError(f"propagation.integration must be one of {', '.join(INTEGRATION)}, got {integration!r}")
+        if survival not in SURVIVALS:
+            raise UserError(f"propagation.survival must be one of {', '.join(SURVIVALS)}, got {survival!r}")
 
     def __init__(
         self,
@@ -78,10 +82,14 @@ class MomentMatching:
         integration: str | LinearIntegration = "delta",
         kinematics: Kinematics | None = None,
         constraints: Sequence[Constraint] = (),
+        survival: str = "markov",
         dtype: torch.dtype | None = None,
         engine: Engine = DEFAULT_ENGINE,
     ) -> None:
+        self.check_settings(survival=survival)
         self.constraints = tuple(constraints)
+        # The markov survival needs each step's lag-one covariance cov(x_t, x_{t+1}); nothing else does.
+        self._lagged = survival == "markov" and bool(terminating(self.constraints))
         if isinstance(integration, str):
             self.check_settings(integration=integration)
             if integration == "speed" and kinematics is None:
@@ -106,8 +114,11 @@ class MomentMatching:
             data["inputs"], data["beta"], data["lengthscales"], data["signal_variance"], data["K_inv"], engine=engine
         )
 
-    def _step(self, state: Gaussian, policy_map: GaussianMap) -> tuple[Gaussian, MomentMatch]:
-        """x_t ~ N(μ, Σ) ↦ (x_{t+1}, moments of u_t), as PILCO's ``propagate`` (fused: Σ exactly symmetric)."""
+    def _step(self, state: Gaussian, policy_map: GaussianMap) -> tuple[Gaussian, MomentMatch, Tensor | None]:
+        """x_t ~ N(μ, Σ) ↦ (x_{t+1}, moments of u_t, cov(x_t, x_{t+1}) or None), as PILCO's ``propagate``.
+
+        The fused step keeps Σ exactly symmetric. The lag-one covariance `... x D x D` only under the markov survival.
+        """
         if not self.engine.fused:
             return self._reference_step(state.expand(), policy_map)
         state = full_batch(state)
@@ -119,6 +130,7 @@ class MomentMatching:
         # cov[x, [y u]] = [cov[x, y], cov[x, y] Σ_y⁻¹ cov[y, u]], then cov[x, Δ] likewise.
         cov_x_in = torch.cat([feats.cross_cov, batch_matmul(feats.cross_cov, act.gain)], dim=-1)
         cov_x_delta = batch_matmul(cov_x_in, delta_gain)
+        lag = self.integration.lag_covariance(cov, cov_x_delta) if self._lagged else None
         # The summands of x_{t+1}: x_t and Δ, or x_t A and Δ J (speed integration).
         mean, cov, delta_mean, delta_cov, cov_x_delta = self.integration.moment_terms(
             mean, cov, delta_mean, delta_cov, cov_x_delta)
@@ -126,9 +138,10 @@ class MomentMatching:
         next_cov = (cov + delta_cov) + (cov_x_delta + cov_x_delta.mT)
         if self.include_noise:
             next_cov = next_cov + self._noise_cov
-        return Gaussian(mean + delta_mean, next_cov), act
+        return Gaussian(mean + delta_mean, next_cov), act, lag
 
-    def _reference_step(self, state: Gaussian, policy_map: GaussianMap) -> tuple[Gaussian, MomentMatch]:
+    def _reference_step(self, state: Gaussian, policy_map: GaussianMap
+                        ) -> tuple[Gaussian, MomentMatch, Tensor | None]:
         """:meth:`_step`, reference formulation: symmetrized after each step."""
         mean, cov = state.mean, state.cov
         feats = self.features.moments(state, self.engine)  # y = φ(x); cross_cov = cov[x, y]
@@ -138,13 +151,14 @@ class MomentMatching:
         # cov[x, [y u]] = [cov[x, y], cov[x, y] Σ_y⁻¹ cov[y, u]], then cov[x, Δ] likewise.
         cov_x_in = torch.cat([feats.cross_cov, feats.cross_cov @ act.gain], dim=-1)
         cov_x_delta = cov_x_in @ delta.gain
+        lag = self.integration.lag_covariance(cov, cov_x_delta) if self._lagged else None
         # The summands of x_{t+1}: x_t and Δ, or x_t A and Δ J (speed integration).
         mean, cov, delta_mean, delta_cov, cov_x_delta = self.integration.moment_terms(
             mean, cov, delta.mean, delta.cov, cov_x_delta)
         next_cov = cov + delta_cov + cov_x_delta + cov_x_delta.mT
         if self.include_noise:
             next_cov = next_cov + self._noise_cov
-        return Gaussian(mean + delta_mean, symmetrize(next_cov)), act
+        return Gaussian(mean + delta_mean, symmetrize(next_cov)), act, lag
 
     def _with_policy_batch(self, state: Gaussian) -> Gaussian:
         """``state`` in the propagation's dtype, its batch broadcast against a batched policy's (`R`, restarts).
@@ -161,7 +175,7 @@ class MomentMatching:
 
     def step(self, state: Gaussian) -> tuple[Gaussian, Gaussian]:
         """One step: the distribution of x_{t+1} and that of the action u_t."""
-        next_state, action = self._step(self._with_policy_batch(state), self.policy.prepare(self.engine))
+        next_state, action, _ = self._step(self._with_policy_batch(state), self.policy.prepare(self.engine))
         return next_state, action.output
 
     def rollout(self, start: Gaussian, horizon: int) -> Rollout:
@@ -176,17 +190,22 @@ class MomentMatching:
             raise ValueError(f"horizon must be >= 1, got {horizon}")
         start = self._with_policy_batch(start)
         policy_map = self.policy.prepare(self.engine)  # ψ-only quantities (β_π, ...) once per rollout
-        states, actions = [start], []
+        states, actions, lags = [start], [], []
         state = start
         for _ in range(horizon):
-            state, action = self._step(state, policy_map)
+            state, action, lag = self._step(state, policy_map)
             states.append(state)
             actions.append(action)
+            lags.append(lag)
         trajectory = _stack_states(states)
         # The successors x_1..x_H are scored in one batched call, outside the recursion.
         successors = Gaussian(trajectory.mean[..., 1:, :], trajectory.cov[..., 1:, :, :])
         rewards = self.reward.expected(successors, self.engine)  # ... x H
-        value, survival = (gaussian_return(self.constraints, rewards, successors) if self.constraints
+        lag_cov = None
+        if self._lagged:  # cov(x_{t−1}, x_t) `... x H x D x D`, broadcast as the states are
+            batch = trajectory.mean.shape[:-2]
+            lag_cov = torch.stack([lag.expand(*batch, *lag.shape[-2:]) for lag in lags], dim=-3)
+        value, survival = (gaussian_return(self.constraints, rewards, successors, lag_cov) if self.constraints
                            else (rewards.sum(-1), None))
         return Rollout(
             value=value,

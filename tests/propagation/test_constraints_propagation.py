@@ -46,12 +46,12 @@ def test_survival_weighted_return_against_particles_with_hard_termination(gp_fac
     torch.testing.assert_close(mm.value, mm.survival[0] * mm.rewards[0])
 
 
-def test_the_survival_over_steps_is_the_product_of_the_steps_and_so_pessimistic(gp_factory):
+def test_the_product_survival_takes_the_steps_as_independent_and_so_is_pessimistic(gp_factory):
     # S_t = Π_{τ≤t} p_τ takes the steps' events as independent (Safe-PILCO); a trajectory's states are
     # positively correlated, so the particles' survival (hard indicator) lies above it.
     gp, policy, reward = linear_parts(gp_factory)
     with torch.no_grad():
-        mm = MomentMatching(gp, policy, reward, constraints=[STOP]).rollout(start2(), 4)
+        mm = MomentMatching(gp, policy, reward, constraints=[STOP], survival="product").rollout(start2(), 4)
         hard = Particles(gp, policy, reward, constraints=[STOP], constraint_temperature=0.0,
                          num_particles=20_000, include_noise=False, seed=3).rollout(start2(), 4)
     assert (mm.survival[1:] < mm.survival[:-1]).all()
@@ -81,13 +81,15 @@ def test_no_constraints_leave_return_and_gradient_unchanged(gp_factory):
         assert torch.equal(particles.rollout(start, 2).value, reward(paths[..., 1:, :]).sum(-1).mean(-1))
 
 
-@pytest.mark.parametrize("propagator", ["moment_matching", "particles"])
+@pytest.mark.parametrize("propagator", ["moment_matching", "moment_matching_product", "particles"])
 def test_gradcheck_of_the_constrained_return_wrt_policy_and_start(gp_factory, propagator):
-    # Through p_t (moment matching) or the relaxed indicator (particles, τ = 0.1), a terminate and a penalty bound.
+    # Through p_t and the pairs' Φ₂ (moment matching) or the relaxed indicator (particles, τ = 0.1), a terminate and a
+    # penalty bound.
     gp, policy, reward = linear_parts(gp_factory)
     bounds = (Constraint(dim=0, low=-0.2, high=0.5), Constraint(dim=1, high=0.0, kind="penalty", weight=0.3))
-    if propagator == "moment_matching":
-        made = MomentMatching(gp, policy, reward, constraints=bounds)
+    if propagator.startswith("moment_matching"):
+        made = MomentMatching(gp, policy, reward, constraints=bounds,
+                              survival="product" if propagator.endswith("product") else "markov")
     else:
         made = Particles(gp, policy, reward, num_particles=8, seed=2, constraints=bounds, constraint_temperature=0.1)
     assert gradcheck_value_wrt_policy_and_start(policy, lambda s: made.rollout(s, 3).value, start2())
@@ -121,3 +123,36 @@ def test_a_negative_temperature_is_refused(gp_factory):
     gp, policy, reward = linear_parts(gp_factory)
     with pytest.raises(Exception, match="constraint_temperature must be >= 0"):
         Particles(gp, policy, reward, constraints=[STOP], constraint_temperature=-1.0)
+
+
+def drifting_parts(gp_factory):
+    """A squashed RBF policy on a 3-D state with an angle, and a bound on x_0 its states cross over several steps."""
+    gp, policy, reward = squashed_rbf_parts(gp_factory, 3, (1,), 4, seeds=(22, 23))
+    start = Gaussian(torch.tensor([0.2, 0.5, -0.1], dtype=DTYPE), 0.05 * torch.eye(3, dtype=DTYPE))
+    return gp, policy, reward, start
+
+
+@pytest.mark.parametrize("parts", ["linear", "drifting"])
+def test_the_markov_survival_follows_the_particles_where_the_product_falls_away(gp_factory, parts):
+    # Each consecutive pair's bivariate Gaussian (the step's lag-one covariance) in place of independent steps: the
+    # particles' survival (hard termination, 20k) within SURVIVAL_ATOL + the one-step Gaussian error, at every step.
+    if parts == "linear":
+        gp, policy, reward = linear_parts(gp_factory)
+        start, stop, angles, horizon = start2(), STOP, (), 10
+    else:
+        gp, policy, reward, start = drifting_parts(gp_factory)
+        angles, horizon = (1,), 8
+        with torch.no_grad():
+            free = MomentMatching(gp, policy, reward, angle_dims=angles).rollout(start, horizon)
+        # A bound the predicted x_0 crosses gradually: at the median of its mean's path.
+        stop = Constraint(dim=0, high=float(free.states.mean[1:, 0].median()))
+    with torch.no_grad():
+        markov = MomentMatching(gp, policy, reward, angle_dims=angles, constraints=[stop]).rollout(start, horizon)
+        product = MomentMatching(gp, policy, reward, angle_dims=angles, constraints=[stop],
+                                 survival="product").rollout(start, horizon)
+        hard = Particles(gp, policy, reward, angle_dims=angles, constraints=[stop], constraint_temperature=0.0,
+                         num_particles=20_000, include_noise=False, seed=3).rollout(start, horizon)
+    markov_gap = (markov.survival - hard.survival).abs()
+    product_gap = (product.survival - hard.survival).abs()
+    assert float(markov_gap.max()) < 0.05, (markov.survival, hard.survival)
+    assert float(product_gap[-1]) > 2 * float(markov_gap[-1]) + 0.02, (product.survival, markov.survival)
