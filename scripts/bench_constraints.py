@@ -12,7 +12,7 @@ of both arms. A finished run is reused and an interrupted one resumed (``qtl.lau
 completed over several calls.
 
     python scripts/bench_constraints.py [--seeds 0 1 2 3 4] [--within 10] [--jobs 2] [--threads 1] [--tag NAME]
-        [--runs-dir DIR] [--no-docs] [override ...]
+        [--runs-dir DIR] [--no-docs] [--track-limit METRES] [override ...]
 """
 
 from __future__ import annotations
@@ -46,6 +46,16 @@ from qtl.errors import UserError
 TASK = "cartpole_track"
 # The two arms, in the table's order: their overrides after task=cartpole_track.
 ARMS: dict[str, list[str]] = {"without": ["task.constraints=[]"], "with": []}
+
+
+def track_arms(limit: float | None) -> dict[str, list[str]]:
+    """The arms' overrides on a track of ±``limit`` m (the env's limit and the declared bound; None: the task's own)."""
+    if limit is None:
+        return ARMS
+    track = f"task.env.track_limit={limit:g}"
+    bound = f"task.constraints=[{{dim:0,low:{-limit:g},high:{limit:g},kind:terminate}}]"
+    return {"without": [track, "task.constraints=[]"], "with": [track, bound]}
+
 ARM_LABELS = {"without": "none (`task.constraints=[]`)", "with": "`terminate` on x"}
 REQUIRED_EPISODES = 10  # success within this many episodes, the random one included (--within)
 REQUIRED_SEEDS = 4  # in at least this many of ...
@@ -105,7 +115,7 @@ def section(info: dict, results: list[dict]) -> str:
     bounds = ", ".join(f"x[{b['dim']}] in [{b['low']}, {b['high']}]" for b in info["bounds"]) or "none"
     tag = f" ({info['tag']})" if info["tag"] else ""
     return "\n".join([
-        f"## State constraints: the cart-pole on a ±0.5 m track{tag}",
+        f"## State constraints: the cart-pole on a ±{info.get('track_limit') or 0.5:g} m track{tag}",
         "",
         f"`{info['command']}` at commit {info['commit']} — {info['date']}, {m['cpu']} ({m['cores']} cores), "
         f"{info['jobs']} run(s) in parallel with {info['threads']} torch thread(s) each, torch {m['torch']}. "
@@ -139,6 +149,8 @@ def main() -> None:
                            runs_dir=ROOT / "runs" / "bench_constraints")
     parser.add_argument("--tag", default="", help="names the result files and table")
     parser.add_argument("--no-docs", action="store_true", help="write the JSON only, not docs/benchmarks.md")
+    parser.add_argument("--track-limit", type=float, default=None,
+                        help="a track of ±this many metres instead of the task's (env limit and declared bound)")
     args, overrides = parse_with_overrides(parser)
     if args.within < 1 or min(args.seeds) < 0 or args.jobs < 1 or args.threads < 1:
         parser.error("--within, --jobs and --threads must be >= 1 and --seeds >= 0")
@@ -146,10 +158,13 @@ def main() -> None:
         args.episodes = args.within - 1
     if args.episodes < 1:
         parser.error(f"--episodes must be >= 1, got {args.episodes}")
+    if args.track_limit is not None and not args.track_limit > 0:
+        parser.error(f"--track-limit must be > 0 (metres), got {args.track_limit}")
+    arms = track_arms(args.track_limit)
 
     # Both arms count crossings against the bounds the task declares (the arm without them declares none).
     try:
-        bounds = declared_bounds([f"task={TASK}", *overrides])
+        bounds = declared_bounds([f"task={TASK}", *arms["with"], *overrides])
     except (HydraException, UserError) as err:
         parser.error(str(err).strip().splitlines()[0])
     if not bounds:
@@ -160,16 +175,17 @@ def main() -> None:
     def one(item: tuple[str, int]) -> dict:
         arm, seed = item
         run_dir = runs_dir / arm / f"seed_{seed}"
-        result = run_seed(seed, args.episodes, run_dir, [f"task={TASK}", *ARMS[arm], *overrides], args.threads)
+        result = run_seed(seed, args.episodes, run_dir, [f"task={TASK}", *arms[arm], *overrides], args.threads)
         return {"arm": arm, **result, **constraint_figures(run_dir, args.episodes + 1, bounds)}
 
-    results = run_all(one, [(arm, seed) for arm in ARMS for seed in args.seeds], args.jobs)
+    results = run_all(one, [(arm, seed) for arm in arms for seed in args.seeds], args.jobs)
     torch.set_num_threads(args.threads)  # as the runs searched
     cost = same_model_cost(runs_dir / "with" / f"seed_{args.seeds[0]}") | {"seed": args.seeds[0]}
-    summaries = {arm: arm_summary([r for r in results if r["arm"] == arm], args.within) for arm in ARMS}
+    summaries = {arm: arm_summary([r for r in results if r["arm"] == arm], args.within) for arm in arms}
     out = ROOT / "docs" / "bench" / f"{name}.json"
     info = {"date": today(), "commit": commit(), "command": command_line(), "machine": machine(),
-            "task": TASK, "overrides": overrides, "arms": ARMS, "tag": args.tag, "within": args.within,
+            "task": TASK, "overrides": overrides, "arms": arms, "tag": args.tag, "within": args.within,
+            "track_limit": args.track_limit,
             "episodes_per_run": args.episodes + 1, "jobs": args.jobs, "threads": args.threads,
             "bounds": [dataclasses.asdict(b) for b in bounds], "results_file": out.relative_to(ROOT).as_posix(),
             "required": f"with constraints: success within {args.within} episodes in >= {REQUIRED_SEEDS} of "
