@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from qtl.bench.constraints import declared_bounds
 from tests.scripts.load import script
 
 bench_constraints = script("bench_constraints")
@@ -87,3 +88,13 @@ def test_the_cost_line_reads_the_same_model_measurement() -> None:
     line = bench_constraints.cost_line({"seed": 0, "episode": 9, "n": 320, "repeats": 7, "with_s": 0.030,
                                         "without_s": 0.025})
     assert "n = 320" in line and "30.0 ms with the constraint and 25.0 ms without" in line and "ratio 1.20" in line
+
+
+def test_a_track_limit_moves_the_env_limit_and_the_declared_bound_together() -> None:
+    assert bench_constraints.track_arms(None) is bench_constraints.ARMS
+    arms = bench_constraints.track_arms(0.6)
+    assert arms["without"] == ["task.env.track_limit=0.6", "task.constraints=[]"]
+    assert arms["with"] == ["task.env.track_limit=0.6",
+                            "task.constraints=[{dim:0,low:-0.6,high:0.6,kind:terminate}]"]
+    (bound,) = declared_bounds([f"task={bench_constraints.TASK}", *arms["with"]])
+    assert (bound.dim, bound.low, bound.high) == (0, -0.6, 0.6)
