@@ -11,7 +11,7 @@ from typing import TypeVar
 
 from qtl.bench.record import display_path
 from qtl.launch import ensure_run
-from qtl.metrics import first_success
+from qtl.metrics import area_under_curve, final_performance, first_success
 from qtl.recorder import METRICS_FILE, TIMINGS_FILE
 
 T = TypeVar("T")
@@ -68,6 +68,14 @@ def read_csv(path: Path) -> list[dict[str, str]]:
     """The rows of a run's CSV file (``metrics.csv``, ``timings.csv``) as dicts of text."""
     with open(path, newline="") as f:
         return list(csv.DictReader(f))
+
+
+def curve_figures(rows: Sequence[dict[str, str]]) -> dict:
+    """A run's learning curve from its ``metrics.csv`` rows: returns, successes, first success, AUC, final value."""
+    returns = [float(r["return"]) for r in rows]
+    successes = [int(r["success"]) for r in rows]
+    return {"returns": returns, "successes": successes, "first_success": first_success(successes),
+            "auc": area_under_curve(returns), "final_performance": final_performance(returns)}
 
 
 def run_seed(seed: int, episodes: int, run_dir: Path, overrides: list[str], threads: int = 1) -> dict:
