@@ -113,6 +113,7 @@ class TransferPlan:
         self.fallen_back = False  # the compliance gate switched this run to PILCO
         self._pilco_psi: dict[str, torch.Tensor] = {}  # PILCO's ψ_0, where a gated run's search starts instead of ψ_s
         self.weighted: WeightedSamples | None = None  # the source tuples of the last model, with their relevance
+        self._tuples: dict[int, SourceSamples] = {}  # source k's tuples as GP training pairs (transfer.samples)
 
     # -- line 1: ψ ----------------------------------------------------------------------------
 
@@ -207,9 +208,12 @@ class TransferPlan:
         return self.weighted
 
     def _source_tuples(self) -> SourceSamples:
-        """The chosen source's tuples as GP training pairs of the modelled outputs, thinned evenly."""
-        return SourceSamples.of(self.source.dataset, self._features, self.outputs, self.max_source_samples,
-                                self._dtype, self.device)
+        """The chosen source's tuples as GP training pairs of the modelled outputs, thinned evenly (made once)."""
+        key = self.sources.index(self.source)
+        if key not in self._tuples:
+            self._tuples[key] = SourceSamples.of(self.source.dataset, self._features, self.outputs,
+                                                 self.max_source_samples, self._dtype, self.device)
+        return self._tuples[key]
 
     def sample_columns(self) -> list[str]:
         """The ``metrics.csv`` columns of the source samples: none unless ``transfer.samples=relevance``."""
