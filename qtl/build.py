@@ -137,6 +137,13 @@ class Parts:
         return self.model.fit(inputs, targets, start=start, generator=generator, previous=previous,
                               outputs=self.modelled, state_dim=self.task.state_dim, extra_noise=extra)
 
+    def fit_own(self, data: TransitionDataset, generator: torch.Generator,
+                start: GPHyperparameters | None = None) -> DynamicsGP:
+        """θ by evidence maximisation on the target's own tuples alone, from ``start``: the judge of source samples."""
+        inputs, targets = self.gp_data(data)
+        return self.model.fit(inputs, targets, start=start, generator=generator, outputs=self.modelled,
+                              state_dim=self.task.state_dim)
+
     def actor(self, policy: Policy) -> Actor:
         """u = π(φ(x)) on real observations (line 11)."""
         return policy_actor(policy, self.features, self.dtype, self.device)

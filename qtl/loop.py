@@ -35,7 +35,7 @@ from qtl.policy_search import SearchResult
 from qtl.propagation import Propagator
 from qtl.recorder import BASE_COLUMNS, THETA_P_PREFIX, RunRecorder, start_columns, start_row, theta_columns, theta_row
 from qtl.run_state import RunState
-from qtl.seeding import ACTION_STREAM, ENV_STREAM, MODEL_STREAM, SEARCH_STREAM, seed_everything
+from qtl.seeding import ACTION_STREAM, ENV_STREAM, JUDGE_STREAM, MODEL_STREAM, SEARCH_STREAM, seed_everything
 from qtl.task import Task, diagonal_gaussian
 from qtl.video import Clip
 
@@ -141,7 +141,9 @@ def learned_episode(cfg: DictConfig, parts: Parts, state: RunState, env: gymnasi
     # -- Line 12: learn θ_p from all tuples (evidence maximisation). -----------------------------------
     # (transfer.samples=relevance: with the source's tuples, each of noise σ_ε² / w, w its relevance.)
     tic = time.perf_counter()
-    samples = plan.source_samples(*parts.gp_data(state.data))
+    # (Their relevance is judged by θ of the target's tuples alone, fitted here too.)
+    samples = plan.source_samples(*parts.gp_data(state.data),
+                                  judge=functools.partial(parts.fit_own, state.data, state.generator(JUDGE_STREAM)))
     model = parts.fit_dynamics(state.data, state.generator(MODEL_STREAM), start=plan.fit_start(),
                                previous=state.previous, samples=samples)
     state.previous = PreviousFit.of(model)

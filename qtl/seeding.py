@@ -10,6 +10,8 @@ import torch
 # Independent random streams, each derived from (seed, episode, stream): a resumed run draws
 # exactly what an uninterrupted one would.
 ENV_STREAM, ACTION_STREAM, MODEL_STREAM, SEARCH_STREAM, POLICY_INIT_STREAM = range(5)
+# The fit of the target's own tuples that judges source samples (transfer.samples=relevance).
+JUDGE_STREAM = 5
 
 
 def seed_everything(seed: int) -> np.random.Generator:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import copy
 import logging
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import torch
@@ -113,6 +113,8 @@ class TransferPlan:
         self.fallen_back = False  # the compliance gate switched this run to PILCO
         self._pilco_psi: dict[str, torch.Tensor] = {}  # PILCO's ψ_0, where a gated run's search starts instead of ψ_s
         self.weighted: WeightedSamples | None = None  # the source tuples of the last model, with their relevance
+        self.judged: GPHyperparameters | None = None  # θ of the target's own tuples that judged them ...
+        self.judged_outputs: tuple[int, ...] = ()  # ... and the outputs it has rows for
         self._tuples: dict[int, SourceSamples] = {}  # source k's tuples as GP training pairs (transfer.samples)
 
     # -- line 1: ψ ----------------------------------------------------------------------------
@@ -192,20 +194,29 @@ class TransferPlan:
 
     # -- line 12: source samples in the data ------------------------------------------------
 
-    def source_samples(self, target_x: Tensor, target_y: Tensor) -> WeightedSamples | None:
+    def source_samples(self, target_x: Tensor, target_y: Tensor,
+                       judge: Callable[[GPHyperparameters | None], DynamicsGP]) -> WeightedSamples | None:
         """The source's tuples for the next model with their relevance under the target's `n x D`, `n x E` tuples.
 
-        None unless ``transfer.samples=relevance`` and a source is chosen and not dropped by the gate. Judged at the
-        previous model's θ (θ_s at the first model).
+        None unless ``transfer.samples=relevance`` and a source is chosen and not dropped by the gate. Judged at θ of
+        the target's own tuples: ``judge(start)`` fits them alone from ``start``, the last judging θ (θ_s before the
+        first). Not at the last model's θ, which the source tuples themselves helped fit: they would vouch for
+        themselves.
         """
         if self.samples != "relevance" or self.source is None or self.fallen_back:
             return None
-        if self.theta is not None:
-            theta, outputs = self.theta, self.theta_outputs
-        else:
-            theta, outputs = self.theta_s, self.theta_s_outputs
-        self.weighted = self._source_tuples().weighted(target_x, target_y, theta, outputs)
+        own = judge(self._judging_start())
+        self.judged, self.judged_outputs = own.hyperparameters, tuple(own.outputs)
+        self.weighted = self._source_tuples().weighted(target_x, target_y, self.judged, self.judged_outputs)
         return self.weighted
+
+    def _judging_start(self) -> GPHyperparameters | None:
+        """Where the judging fit starts: the last judging θ, else θ_s, of every modelled output; else the heuristic."""
+        if self.judged is not None and self.judged_outputs == self.outputs:
+            return self.judged
+        if self.theta_s is not None and self.theta_s_outputs == self.outputs:
+            return self.theta_s
+        return None
 
     def _source_tuples(self) -> SourceSamples:
         """The chosen source's tuples as GP training pairs of the modelled outputs, thinned evenly (made once)."""
@@ -297,6 +308,7 @@ class TransferPlan:
             state["chosen_by"] = list(self._chosen_compliances)  # Λ_k at the first model: the choice, and its θ_s
         if self.weighted is not None:  # the last model's source tuples and their relevance
             state["samples"] = {key: getattr(self.weighted, key).cpu() for key in SAMPLE_STATE}
+            state["judged"] = {"theta": self.judged.state_dict(), "outputs": list(self.judged_outputs)}
         return state
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
@@ -310,6 +322,9 @@ class TransferPlan:
         samples = state.get("samples")
         self.weighted = None if samples is None else WeightedSamples(
             *(samples[key].to(dtype=self._dtype, device=self.device) for key in SAMPLE_STATE))
+        judged = state.get("judged")
+        self.judged = None if judged is None else GPHyperparameters(**judged["theta"]).to(device=self.device)
+        self.judged_outputs = () if judged is None else tuple(int(d) for d in judged["outputs"])
 
     def _modelled(self, theta: GPHyperparameters) -> GPHyperparameters:
         """``theta`` on the plan's device, cut to the modelled outputs if it holds all D (stored before issue 63)."""

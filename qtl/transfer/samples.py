@@ -1,22 +1,31 @@
 """Source samples weighted by relevance: source tuples in the target GP's data with noise σ_ε² / w (issue 65).
 
 The paper's conclusion names the step beyond θ: tuples of the source that adjust the target's posterior of the
-transition function. Lazaric et al. (2008) weigh each source sample by its *relevance* to the target's own tuples;
-qtl uses the GP-native form of that idea. With the target GP f_T fitted on the target's tuples alone at the current
-θ, the relevance of source tuple (x_i, Δ_i) for output e is its predictive density over the density's peak:
+transition function. Lazaric et al. (2008) weigh each source sample by its *relevance*: its own compliance with the
+target's samples where those can judge it, combined with the whole task's compliance. qtl uses the GP-native form of
+that idea. With the target GP f_T fitted on the target's tuples alone at the current θ, source tuple (x_i, Δ_i) has,
+for output e,
 
-    w_ei = N(Δ_ei; μ_e(x_i), v_e(x_i) + σ_e²) / N(μ_e(x_i); μ_e(x_i), v_e(x_i) + σ_e²) = exp(−½ z_ei²),
+- a local relevance, its predictive density over the density's peak,
+  ℓ_ei = N(Δ_ei; μ_e(x_i), v_e(x_i) + σ_e²) / N(μ_e(x_i); μ_e(x_i), v_e(x_i) + σ_e²) = exp(−½ z_ei²);
+- a coverage κ_ei = 1 − v_e(x_i)/α_e² ∈ [0, 1]: how far the target's tuples have pinned f_T down at x_i (0 far from
+  them, where f_T is its prior and ℓ says nothing);
+- the source's trust for that output, ρ_e = (√2 Σ_i κ_ei ℓ_ei + 1) / (Σ_i κ_ei + 1) capped at 1: the covered
+  tuples' mean ℓ over what a source that matches the target scores (E[exp(−½ z²)] = 1/√2 for z ~ N(0, 1); a source
+  off by b standard deviations scores exp(−b²/4)), with one pseudo-tuple of full trust before there is coverage;
 
-z_ei the tuple's standardised residual under f_T. Where the target has no data near x_i, v_e ≈ α² and the source
-tuple is trusted (w → 1: it fills in where the target has not been); where the target's tuples contradict it,
-z_ei is large and w → 0. The tuple then joins the target's data with noise σ_e² + σ̂_e² (1/w_ei − 1), σ̂_e² the noise
-of the judging θ, so σ_e²/w_ei there (:mod:`qtl.models.point_noise`): w = 1 pools it, w → 0 leaves the target's
-data alone, for the posterior and for evidence maximisation of θ alike. Per output, since the
-outputs are independent GPs. The weights are recomputed at every model, so the target's data take over as they grow.
+and w_ei = κ_ei ℓ_ei + (1 − κ_ei) ρ_e. Where the target's tuples contradict the source, ℓ → 0; where the target has no
+data, a tuple counts as much as the source has earned where it could be judged, so a source that contradicts the
+target where it has been is switched off where it has not. The tuple joins the target's data with noise
+σ_e² + σ̂_e² (1/w_ei − 1), σ̂_e² the noise of the judging θ, so σ_e²/w_ei there (:mod:`qtl.models.point_noise`): w = 1
+pools it, w → 0 leaves the target's data alone, for the posterior and for evidence maximisation of θ alike. Per
+output, since the outputs are independent GPs. The weights are recomputed at every model, so the target's data take
+over as they grow.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
@@ -30,6 +39,8 @@ from qtl.models import DynamicsGP, GPHyperparameters
 SAMPLE_MODES = ("none", "relevance")
 # The floor of w: σ_ε² / w stays finite and K well conditioned; such a tuple moves the posterior by ~w of its residual.
 MIN_RELEVANCE = 1e-8
+# ρ's prior: this many tuples of full trust, so that ρ = 1 before the target's tuples cover any source tuple.
+TRUST_PSEUDO_TUPLES = 1.0
 # metrics.csv columns (runs with transfer.samples=relevance only): the source tuples in the GP's data, the mean w over
 # them and the outputs, and Σ_i w_i averaged over the outputs (the effective number of source tuples).
 SOURCE_SAMPLES = "source_samples"
@@ -38,12 +49,29 @@ EFFECTIVE_SAMPLES = "effective_samples"
 SAMPLE_COLUMNS = (SOURCE_SAMPLES, RELEVANCE, EFFECTIVE_SAMPLES)
 
 
+def local_relevance(target: DynamicsGP, source_x: Tensor, source_y: Tensor) -> tuple[Tensor, Tensor]:
+    """ℓ = exp(−½ z²) and coverage κ = 1 − v/α² of source tuples `N x D`, `N x E` under ``target``: `N x E` each."""
+    mean, variance = target.predict(source_x, include_noise=True)
+    local = torch.exp(-0.5 * (source_y - mean).square() / variance)
+    theta = target.hyperparameters
+    latent = variance - theta.noise_variance.to(variance)
+    coverage = (1 - latent / theta.signal_variance.to(variance)).clamp(0.0, 1.0)
+    return local, coverage
+
+
+def source_trust(local: Tensor, coverage: Tensor) -> Tensor:
+    """ρ_e = (√2 Σ κ ℓ + 1) / (Σ κ + 1) ≤ 1 of ℓ, κ `N x E`: the covered tuples' ℓ over a matching source's: `E`."""
+    earned = math.sqrt(2.0) * (coverage * local).sum(0) + TRUST_PSEUDO_TUPLES
+    return (earned / (coverage.sum(0) + TRUST_PSEUDO_TUPLES)).clamp(max=1.0)
+
+
 def relevance(target_x: Tensor, target_y: Tensor, source_x: Tensor, source_y: Tensor,
               theta: GPHyperparameters) -> Tensor:
-    """w_ei = exp(−½ z_ei²) of source tuples `N x D`, `N x E` under the target GP at θ on `n x D`, `n x E`: `N x E`."""
+    """w = κ ℓ + (1 − κ) ρ of source tuples `N x D`, `N x E` under the target GP at θ on `n x D`, `n x E`: `N x E`."""
     target = DynamicsGP(target_x, target_y, theta, dtype=target_x.dtype)
-    mean, variance = target.predict(source_x, include_noise=True)
-    return torch.exp(-0.5 * (source_y - mean).square() / variance).clamp_min(MIN_RELEVANCE)
+    local, coverage = local_relevance(target, source_x, source_y)
+    weights = coverage * local + (1 - coverage) * source_trust(local, coverage)
+    return weights.clamp(MIN_RELEVANCE, 1.0)
 
 
 @dataclass(frozen=True)

@@ -10,7 +10,7 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from qtl.build import build
+from qtl.build import build, transfer_plan
 from qtl.checkpoint import latest_checkpoint, load_checkpoint
 from qtl.data import TransitionDataset
 from qtl.errors import TransferError
@@ -28,7 +28,9 @@ from qtl.transfer.samples import (
     SOURCE_SAMPLES,
     SourceSamples,
     WeightedSamples,
+    local_relevance,
     relevance,
+    source_trust,
 )
 from tests.helpers import PARTICLES_TINY, TINY, tiny_config, train_config
 
@@ -52,24 +54,69 @@ THETA = GPHyperparameters(torch.tensor([[1.0, 1.0]], dtype=DTYPE), torch.tensor(
                           torch.tensor([1e-4], dtype=DTYPE))
 
 
-def test_relevance_is_the_target_predictive_density_over_its_peak():
+def test_local_relevance_is_the_target_predictive_density_over_its_peak_and_coverage_its_variance_cut():
     x, y = toy(30, 0)
     sx, sy = toy(7, 1, shift=0.02)
-    w = relevance(x, y, sx, sy, THETA)
-    mean, var = DynamicsGP(x, y, THETA).predict(sx, include_noise=True)
+    target = DynamicsGP(x, y, THETA)
+    local, coverage = local_relevance(target, sx, sy)
+    mean, var = target.predict(sx, include_noise=True)
     density = torch.distributions.Normal(mean, var.sqrt())
     expected = (density.log_prob(sy) - density.log_prob(mean)).exp()
-    torch.testing.assert_close(w, expected, rtol=1e-12, atol=1e-300)
-    assert w.shape == (7, 1) and bool((w > 0).all()) and bool((w <= 1).all())
+    torch.testing.assert_close(local, expected, rtol=1e-12, atol=1e-300)
+    _, latent = target.predict(sx)
+    torch.testing.assert_close(coverage, 1 - latent / THETA.signal_variance, rtol=1e-9, atol=1e-12)
+    assert local.shape == coverage.shape == (7, 1) and bool((local > 0).all()) and bool((local <= 1).all())
+    far = torch.full((1, 2), 30.0, dtype=DTYPE)
+    assert float(local_relevance(target, x[:1], y[:1])[1]) > 0.99  # at a target tuple: covered
+    assert float(local_relevance(target, far, torch.zeros(1, 1, dtype=DTYPE))[1]) < 1e-9  # far from all: not
 
 
-def test_relevance_keeps_what_fits_and_switches_off_what_contradicts_the_target():
+def test_relevance_is_local_where_covered_and_the_source_trust_where_not():
+    x, y = toy(30, 0)
+    sx, sy = toy(9, 1, shift=0.3)
+    target = DynamicsGP(x, y, THETA)
+    local, coverage = local_relevance(target, sx, sy)
+    trust = (math.sqrt(2) * (coverage * local).sum(0) + 1) / (coverage.sum(0) + 1)
+    torch.testing.assert_close(source_trust(local, coverage), trust.clamp(max=1.0), rtol=1e-12, atol=0)
+    torch.testing.assert_close(relevance(x, y, sx, sy, THETA),
+                               (coverage * local + (1 - coverage) * trust.clamp(max=1.0)).clamp_min(MIN_RELEVANCE),
+                               rtol=1e-12, atol=0)
+    # No tuple covered: the pseudo-tuple's full trust.
+    nothing = torch.zeros(5, 2, dtype=DTYPE)
+    torch.testing.assert_close(source_trust(torch.rand(5, 2, dtype=DTYPE), nothing), torch.ones(2, dtype=DTYPE))
+
+
+@pytest.mark.parametrize("offset", [0.0, 1.0, 2.0])
+def test_source_trust_is_one_for_a_matching_source_and_exp_minus_b2_over_4_off_by_b_monte_carlo(offset):
+    """Source Δ drawn from the target's predictive at covered inputs, shifted by ``offset`` standard deviations."""
+    gen = torch.Generator().manual_seed(3)
+    x = torch.linspace(-3, 3, 40, dtype=DTYPE)[:, None].expand(40, 2).contiguous()
+    target = DynamicsGP(x, x[:, :1].sin(), THETA)
+    sx = x[:-1] + 0.5 * (x[1:] - x[:-1])  # between the target's inputs: covered
+    mean, var = target.predict(sx, include_noise=True)
+    draws = 4000
+    sx = sx.repeat(draws // len(sx) + 1, 1)[:draws]
+    mean, var = mean.repeat(draws // len(mean) + 1, 1)[:draws], var.repeat(draws // len(var) + 1, 1)[:draws]
+    sy = mean + var.sqrt() * (offset + torch.randn(mean.shape, generator=gen, dtype=DTYPE))
+    local, coverage = local_relevance(target, sx, sy)
+    assert float(coverage.min()) > 0.99
+    # √2 ℓ has mean exp(−b²/4) and variance 2/√3 · exp(−b²/3) − exp(−b²/2) under z ~ N(b, 1).
+    expected = math.exp(-offset**2 / 4)
+    se = math.sqrt((2 / math.sqrt(3) * math.exp(-offset**2 / 3) - math.exp(-offset**2 / 2)) / draws)
+    assert abs(float(source_trust(local, coverage)) - min(expected, 1.0)) < 4 * se + 1e-3
+
+
+def test_relevance_keeps_what_fits_and_switches_off_what_contradicts_the_target_even_where_it_has_no_data():
     x, y = toy(40, 0)
     fits = relevance(x, y, *toy(20, 1), THETA)
     contradicts = relevance(x, y, *toy(20, 1, shift=1.0), THETA)
-    assert float(fits.median()) > 0.5 and float(contradicts.median()) == MIN_RELEVANCE
-    far = torch.full((1, 2), 30.0, dtype=DTYPE)  # where the target has no data: the prior, w near 1 for any Δ ~ α
-    assert float(relevance(x, y, far, torch.tensor([[0.5]], dtype=DTYPE), THETA)) > 0.85
+    assert float(fits.median()) > 0.5 and float(contradicts.median()) < 1e-3
+    # A tuple far from the target's data goes with its source: trusted from one that fits, off from one that does not.
+    far_x, far_y = torch.full((1, 2), 30.0, dtype=DTYPE), torch.tensor([[0.5]], dtype=DTYPE)
+    fitting = relevance(x, y, torch.cat([toy(20, 1)[0], far_x]), torch.cat([toy(20, 1)[1], far_y]), THETA)
+    contradicting = relevance(x, y, torch.cat([toy(20, 1, shift=1.0)[0], far_x]),
+                              torch.cat([toy(20, 1, shift=1.0)[1], far_y]), THETA)
+    assert float(fitting[-1]) > 0.8 and float(contradicting[-1]) < 0.1
 
 
 def test_weighted_samples_give_sigma_over_w_at_the_judging_theta():
@@ -144,6 +191,33 @@ def test_the_weighted_fit_is_pooling_at_w_1_and_the_target_alone_as_w_vanishes(f
                 return model.log_evidence() * len(model.train_x) - alone.log_evidence() * len(own_x)
 
         torch.testing.assert_close(gap(model.hyperparameters), gap(plain.hyperparameters), rtol=0, atol=1e-6)
+
+
+def test_samples_are_judged_by_the_target_tuples_own_fit_not_by_a_model_they_helped_fit(finished_source):
+    """The judging θ: the target's tuples alone, fitted from θ_s first, then from the last judging θ."""
+    cfg = tiny_config(HEAVY, "model.restarts=1", f"transfer.source={finished_source}", "approach=qtl_bayesian",
+                      "transfer.samples=relevance", "transfer.max_source_samples=12")
+    parts = build(cfg)
+    plan = transfer_plan(cfg, parts)
+    target = load_checkpoint(latest_checkpoint(finished_source))
+    data = TransitionDataset(parts.task.state_dim, parts.task.action_dim, parts.task.angle_dims)
+    data.add_episode(target["dataset"]["states"][0], target["dataset"]["actions"][0])
+    x, y = parts.gp_data(data)
+    starts: list[GPHyperparameters | None] = []
+
+    def judge(start: GPHyperparameters | None) -> DynamicsGP:
+        starts.append(start)
+        return parts.fit_own(data, torch.Generator().manual_seed(0), start)
+
+    first = plan.source_samples(x, y, judge)
+    own = parts.fit_own(data, torch.Generator().manual_seed(0), plan.theta_s)
+    torch.testing.assert_close(plan.judged.lengthscales, own.hyperparameters.lengthscales, rtol=0, atol=0)
+    expected = relevance(x, y, first.inputs, first.targets, own.hyperparameters)
+    torch.testing.assert_close(first.weights, expected, rtol=1e-12, atol=0)
+    torch.testing.assert_close(first.judged_noise, own.hyperparameters.noise_variance, rtol=0, atol=0)
+    plan.source_samples(x, y, judge)
+    assert starts[0] is plan.theta_s and starts[1] is not None
+    torch.testing.assert_close(starts[1].lengthscales, own.hyperparameters.lengthscales, rtol=0, atol=0)
 
 
 def test_moment_matching_through_a_weighted_model_matches_monte_carlo(finished_source):
