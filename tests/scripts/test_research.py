@@ -100,3 +100,14 @@ def test_kinematic_residual_measures_how_well_positions_follow_their_velocities(
     coarse = [line for line in script("kinematic_residual.py", str(source_dir), "--weight", "0").stdout.splitlines()
               if line.startswith("|") and "0.1" in line.split("|")[4]]
     assert coarse and all(line.split("|")[5].strip() == "0" for line in coarse)  # explicit Euler, w = 0
+
+
+def test_relevance_drift_judges_source_tuples_by_theta_s_the_last_model_and_the_target_alone(runs) -> None:
+    (source_dir,) = runs
+    done = script("relevance_drift.py", str(source_dir), str(source_dir), "--episodes", "1", "--refits", "2",
+                  "--max-samples", "8")
+    report = json.loads(done.stdout.strip().splitlines()[-1])
+    assert report["source_tuples"] == 8 and report["target_tuples"] > 0
+    assert [row["judged by"] for row in report["rows"]] == [
+        "θ_s", "the last model, refit 1", "the last model, refit 2", "the judge: the target's tuples alone"]
+    assert all(0 < w <= 1 for row in report["rows"] for key, w in row.items() if key.startswith("w, output"))
