@@ -30,6 +30,7 @@ from qtl.bench import (
     command_line,
     commit,
     first_successes,
+    initial_episodes,
     machine,
     markdown_table,
     mean_std,
@@ -114,15 +115,17 @@ def section(info: dict, results: list[dict]) -> str:
     state = {True: "met", False: "NOT met", None: "not judged: a partial run of fewer seeds"}[info["passed"]]
     bounds = ", ".join(f"x[{b['dim']}] in [{b['low']}, {b['high']}]" for b in info["bounds"]) or "none"
     tag = f" ({info['tag']})" if info["tag"] else ""
+    random = info.get("random_episodes", 1)
     return "\n".join([
         f"## State constraints: the cart-pole on a ±{info.get('track_limit') or 0.5:g} m track{tag}",
         "",
         f"`{info['command']}` at commit {info['commit']} — {info['date']}, {m['cpu']} ({m['cores']} cores), "
         f"{info['jobs']} run(s) in parallel with {info['threads']} torch thread(s) each, torch {m['torch']}. "
-        f"`task={TASK}`, {info['episodes_per_run']} episodes per seed (1 random + {info['episodes_per_run'] - 1} "
-        f"learned), once with its `terminate` constraint and once with `task.constraints=[]` (the env terminates "
-        f"in both). Crossings: episodes whose real states left {bounds}. Search cost: policy-search seconds over "
-        f"evaluations of the predicted return, learned episodes. Results: `{info['results_file']}`.",
+        f"`task={TASK}`, {info['episodes_per_run']} episodes per seed ({random} random + "
+        f"{info['episodes_per_run'] - random} learned), once with its `terminate` constraint and once with "
+        f"`task.constraints=[]` (the env terminates in both). Crossings: episodes whose real states left {bounds}. "
+        f"Search cost: policy-search seconds over evaluations of the predicted return, learned episodes. "
+        f"Results: `{info['results_file']}`.",
         "",
         f"**Required: with the constraint, success within {within} episodes in at least {REQUIRED_SEEDS} of "
         f"{JUDGED_SEEDS} seeds, and fewer crossings than without — {state} ({on['solved']} of {on['seeds']} seeds; "
@@ -154,8 +157,9 @@ def main() -> None:
     args, overrides = parse_with_overrides(parser)
     if args.within < 1 or min(args.seeds) < 0 or args.jobs < 1 or args.threads < 1:
         parser.error("--within, --jobs and --threads must be >= 1 and --seeds >= 0")
+    random = initial_episodes(overrides)  # random_episodes=N among the overrides, else 1
     if args.episodes is None:
-        args.episodes = args.within - 1
+        args.episodes = args.within - random
     if args.episodes < 1:
         parser.error(f"--episodes must be >= 1, got {args.episodes}")
     if args.track_limit is not None and not args.track_limit > 0:
@@ -176,7 +180,7 @@ def main() -> None:
         arm, seed = item
         run_dir = runs_dir / arm / f"seed_{seed}"
         result = run_seed(seed, args.episodes, run_dir, [f"task={TASK}", *arms[arm], *overrides], args.threads)
-        return {"arm": arm, **result, **constraint_figures(run_dir, args.episodes + 1, bounds)}
+        return {"arm": arm, **result, **constraint_figures(run_dir, random + args.episodes, bounds)}
 
     results = run_all(one, [(arm, seed) for arm in arms for seed in args.seeds], args.jobs)
     torch.set_num_threads(args.threads)  # as the runs searched
@@ -185,8 +189,8 @@ def main() -> None:
     out = ROOT / "docs" / "bench" / f"{name}.json"
     info = {"date": today(), "commit": commit(), "command": command_line(), "machine": machine(),
             "task": TASK, "overrides": overrides, "arms": arms, "tag": args.tag, "within": args.within,
-            "track_limit": args.track_limit,
-            "episodes_per_run": args.episodes + 1, "jobs": args.jobs, "threads": args.threads,
+            "track_limit": args.track_limit, "episodes_per_run": random + args.episodes, "random_episodes": random,
+            "jobs": args.jobs, "threads": args.threads,
             "bounds": [dataclasses.asdict(b) for b in bounds], "results_file": out.relative_to(ROOT).as_posix(),
             "required": f"with constraints: success within {args.within} episodes in >= {REQUIRED_SEEDS} of "
                         f"{JUDGED_SEEDS} seeds, and fewer crossings than without",

@@ -27,7 +27,14 @@ from qtl.bench.record import (
     write_results,
     write_section,
 )
-from qtl.bench.runs import add_learning_arguments, parse_with_overrides, read_csv, run_all, run_seed
+from qtl.bench.runs import (
+    add_learning_arguments,
+    initial_episodes,
+    parse_with_overrides,
+    read_csv,
+    run_all,
+    run_seed,
+)
 
 __all__ = [
     "BENCHMARKS_MD",
@@ -37,6 +44,7 @@ __all__ = [
     "commit",
     "display_path",
     "first_successes",
+    "initial_episodes",
     "machine",
     "markdown_table",
     "mean_std",

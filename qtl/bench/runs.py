@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import TypeVar
 
 from qtl.bench.record import display_path
+from qtl.config.schema import TrainConfig
 from qtl.launch import ensure_run
 from qtl.metrics import area_under_curve, final_performance, first_success
 from qtl.recorder import METRICS_FILE, TIMINGS_FILE
@@ -78,11 +79,21 @@ def curve_figures(rows: Sequence[dict[str, str]]) -> dict:
             "auc": area_under_curve(returns), "final_performance": final_performance(returns)}
 
 
+def initial_episodes(overrides: Sequence[str]) -> int:
+    """The initial episodes of a run of ``overrides``: the last ``random_episodes=N`` among them, else the default."""
+    given = [o.split("=", 1)[1] for o in overrides if o.lstrip("+").startswith("random_episodes=")]
+    return int(given[-1]) if given else TrainConfig.random_episodes
+
+
 def run_seed(seed: int, episodes: int, run_dir: Path, overrides: list[str], threads: int = 1) -> dict:
-    """One full learning run through the CLI (reused or resumed when there is one); its per-episode figures."""
-    wall = ensure_run([f"seed={seed}", f"episodes={episodes}", *overrides], run_dir, episodes + 1, threads=threads)
-    rows = read_csv(run_dir / METRICS_FILE)[: episodes + 1]
-    timings = read_csv(run_dir / TIMINGS_FILE)[: episodes + 1]
+    """One full learning run through the CLI (reused or resumed when there is one); its per-episode figures.
+
+    ``episodes``: the learned ones, after the initial ``random_episodes`` of ``overrides``.
+    """
+    total = initial_episodes(overrides) + episodes
+    wall = ensure_run([f"seed={seed}", f"episodes={episodes}", *overrides], run_dir, total, threads=threads)
+    rows = read_csv(run_dir / METRICS_FILE)[:total]
+    timings = read_csv(run_dir / TIMINGS_FILE)[:total]
     learned = [t for t, r in zip(timings, rows, strict=True) if r["kind"] == "policy"]
     successes = [int(r["success"]) for r in rows]
     return {

@@ -82,6 +82,9 @@ def test_section_states_command_verdict_bounds_and_results_file() -> None:
     assert "`python scripts/bench_constraints.py` at commit abc1234 — 2026-12-06, test CPU (2 cores)" in text
     assert "x[0] in [-0.5, 0.5]" in text and "`docs/bench/constraints.json`" in text
     assert "— met (4 of 5 seeds; 2 crossings with, 7 without)" in text
+    assert f"{WITHIN} episodes per seed (1 random + {WITHIN - 1} learned)" in text
+    three = bench_constraints.section({**info, "random_episodes": 3}, results)
+    assert f"{WITHIN} episodes per seed (3 random + {WITHIN - 3} learned)" in three
 
 
 def test_the_cost_line_reads_the_same_model_measurement() -> None:
