@@ -136,7 +136,7 @@ def bench_setting(setting: Setting, args: argparse.Namespace, overrides: list[st
         failures += [f for f in run_all(target, jobs, args.jobs) if f]
 
     arms: dict[str, list[dict[str, Any]]] = {}
-    for arm in args.arms:
+    for arm in ARMS:  # the tables read every arm's finished runs, whichever --arms ran
         for seed in args.seeds:
             run_dir = target_dir(arm, seed)
             if finished(run_dir, budget):
@@ -151,7 +151,7 @@ def bench_setting(setting: Setting, args: argparse.Namespace, overrides: list[st
             "source_value": setting.source_value, "target_value": setting.target_value,
             "episodes_per_run": budget, "jobs": args.jobs, "threads": args.threads, "seeds": args.seeds,
             "sources": ", ".join(f"{d}/seed_<k>" for d in source_dirs), "output": display_path(out),
-            "not_run": [f"{arm}, seed {seed}" for arm in args.arms for seed in args.seeds
+            "not_run": [f"{arm}, seed {seed}" for arm in ARMS for seed in args.seeds
                         if seed not in {r["seed"] for r in arms.get(arm, [])}],
             "goal": goal, "comparisons": comparisons(arms, budget), "arms": arms}
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -169,7 +169,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--settings", nargs="+", choices=list(SETTINGS), default=list(SETTINGS))
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
-    parser.add_argument("--arms", nargs="+", choices=ARMS, default=list(ARMS))
+    parser.add_argument("--arms", nargs="+", choices=ARMS, default=list(ARMS),
+                        help="run only these arms (the tables still read every arm's finished runs)")
     parser.add_argument("--episodes", type=int, help="learned episodes per target run (default: the setting's budget)")
     parser.add_argument("--jobs", type=int, default=1, help="runs in parallel")
     parser.add_argument("--threads", type=int, default=1, help="torch threads per run")
