@@ -142,8 +142,7 @@ def learned_episode(cfg: DictConfig, parts: Parts, state: RunState, env: gymnasi
     # (transfer.samples=relevance: with the source's tuples, each of noise σ_ε² / w, w its relevance.)
     tic = time.perf_counter()
     # (Their relevance is judged by θ of the target's tuples alone, fitted here too.)
-    samples = plan.source_samples(*parts.gp_data(state.data),
-                                  judge=functools.partial(parts.fit_own, state.data, state.generator(JUDGE_STREAM)))
+    samples = plan.source_samples(functools.partial(parts.fit_own, state.data, state.generator(JUDGE_STREAM)))
     model = parts.fit_dynamics(state.data, state.generator(MODEL_STREAM), start=plan.fit_start(),
                                previous=state.previous, samples=samples)
     state.previous = PreviousFit.of(model)

@@ -9,7 +9,7 @@ from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import torch
-from torch import Tensor, nn
+from torch import nn
 
 from qtl.errors import TransferError
 from qtl.features import AngleFeatures
@@ -194,9 +194,8 @@ class TransferPlan:
 
     # -- line 12: source samples in the data ------------------------------------------------
 
-    def source_samples(self, target_x: Tensor, target_y: Tensor,
-                       judge: Callable[[GPHyperparameters | None], DynamicsGP]) -> WeightedSamples | None:
-        """The source's tuples for the next model with their relevance under the target's `n x D`, `n x E` tuples.
+    def source_samples(self, judge: Callable[[GPHyperparameters | None], DynamicsGP]) -> WeightedSamples | None:
+        """The source's tuples for the next model with their relevance under the target's tuples.
 
         None unless ``transfer.samples=relevance`` and a source is chosen and not dropped by the gate. Judged at θ of
         the target's own tuples: ``judge(start)`` fits them alone from ``start``, the last judging θ (θ_s before the
@@ -207,7 +206,7 @@ class TransferPlan:
             return None
         own = judge(self._judging_start())
         self.judged, self.judged_outputs = own.hyperparameters, tuple(own.outputs)
-        self.weighted = self._source_tuples().weighted(target_x, target_y, self.judged, self.judged_outputs)
+        self.weighted = self._source_tuples().judged_by(own)
         return self.weighted
 
     def _judging_start(self) -> GPHyperparameters | None:

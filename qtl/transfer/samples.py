@@ -65,13 +65,17 @@ def source_trust(local: Tensor, coverage: Tensor) -> Tensor:
     return (earned / (coverage.sum(0) + TRUST_PSEUDO_TUPLES)).clamp(max=1.0)
 
 
-def relevance(target_x: Tensor, target_y: Tensor, source_x: Tensor, source_y: Tensor,
-              theta: GPHyperparameters) -> Tensor:
-    """w = κ ℓ + (1 − κ) ρ of source tuples `N x D`, `N x E` under the target GP at θ on `n x D`, `n x E`: `N x E`."""
-    target = DynamicsGP(target_x, target_y, theta, dtype=target_x.dtype)
-    local, coverage = local_relevance(target, source_x, source_y)
+def judged_relevance(judge: DynamicsGP, source_x: Tensor, source_y: Tensor) -> Tensor:
+    """w = κ ℓ + (1 − κ) ρ of source tuples `N x D`, `N x E` under ``judge``, a GP of the target's tuples: `N x E`."""
+    local, coverage = local_relevance(judge, source_x, source_y)
     weights = coverage * local + (1 - coverage) * source_trust(local, coverage)
     return weights.clamp(MIN_RELEVANCE, 1.0)
+
+
+def relevance(target_x: Tensor, target_y: Tensor, source_x: Tensor, source_y: Tensor,
+              theta: GPHyperparameters) -> Tensor:
+    """:func:`judged_relevance` under the GP at θ of the target's tuples `n x D`, `n x E`: `N x E`."""
+    return judged_relevance(DynamicsGP(target_x, target_y, theta, dtype=target_x.dtype), source_x, source_y)
 
 
 @dataclass(frozen=True)
@@ -123,20 +127,26 @@ class SourceSamples:
         return cls(inputs[indices.to(inputs.device)], targets[:, list(outputs)][indices.to(inputs.device)], indices,
                    outputs)
 
-    def weighted(self, target_x: Tensor, target_y: Tensor, theta: GPHyperparameters,
-                 theta_outputs: Sequence[int]) -> WeightedSamples:
-        """The samples with their relevance under the target's tuples `n x D`, `n x E` at θ (rows ``theta_outputs``).
+    def judged_by(self, judge: DynamicsGP) -> WeightedSamples:
+        """The samples with their relevance under ``judge``, a GP of the target's tuples alone (of its outputs).
 
-        An output θ has no row for (the last model found its Δ constant: no GP to judge by) keeps w = 1.
+        An output the judge has no GP for (its Δ constant in the target's data) keeps w = 1.
         """
         weights = torch.ones_like(self.targets)
         noise = torch.zeros(len(self.outputs), dtype=self.targets.dtype, device=self.targets.device)
-        columns = [self.outputs.index(d) for d in theta_outputs if d in self.outputs]
-        rows = [k for k, d in enumerate(theta_outputs) if d in self.outputs]
+        columns = [self.outputs.index(d) for d in judge.outputs]
         if columns:
-            judged = theta.select(torch.tensor(rows)) if len(rows) != theta.num_outputs else theta
-            judged = judged.to(dtype=target_x.dtype, device=target_x.device)
-            weights[:, columns] = relevance(target_x, target_y[:, columns], self.inputs, self.targets[:, columns],
-                                            judged)
-            noise[columns] = judged.noise_variance.to(noise)
+            weights[:, columns] = judged_relevance(judge, self.inputs, self.targets[:, columns])
+            noise[columns] = judge.hyperparameters.noise_variance.to(noise)
         return WeightedSamples(self.inputs, self.targets, weights, noise)
+
+    def weighted(self, target_x: Tensor, target_y: Tensor, theta: GPHyperparameters,
+                 theta_outputs: Sequence[int]) -> WeightedSamples:
+        """:meth:`judged_by` the GP at θ (rows ``theta_outputs``) of the target's tuples `n x D`, `n x E` (modelled)."""
+        rows = [k for k, d in enumerate(theta_outputs) if d in self.outputs]
+        outputs = [int(theta_outputs[k]) for k in rows]
+        judged = theta.select(torch.tensor(rows)) if len(rows) != theta.num_outputs else theta
+        columns = [self.outputs.index(d) for d in outputs]
+        judge = DynamicsGP(target_x, target_y[:, columns], judged.to(dtype=target_x.dtype, device=target_x.device),
+                           outputs=outputs, dtype=target_x.dtype)
+        return self.judged_by(judge)
