@@ -477,9 +477,14 @@ def measure_aircraft(job: dict[str, Any]) -> dict[str, Any]:
         return {"error": f"{type(err).__name__}: {err}"}
 
 
+def integration_suffix(device: str, tag: str = "") -> str:
+    """The name suffix of ``--compare integration``'s JSON and section: the device where not the CPU, and the tag."""
+    return "_integration" + ("" if resolve_device(device).type == "cpu" else f"-{device}") + (f"-{tag}" if tag else "")
+
+
 def compare_integration(args: argparse.Namespace) -> None:
     """Full-state vs kinematic moment matching: cart-pole searches per n, one aircraft round; JSON and section."""
-    suffix = "_integration" + ("" if resolve_device(args.device).type == "cpu" else f"-{args.device}")
+    suffix = integration_suffix(args.device, args.tag)
     output = (args.output or DEFAULT_OUTPUT.with_stem(DEFAULT_OUTPUT.stem + suffix)).resolve()
     data_cfg = compose_config("moment_matching", "float64", args.overrides)
     rows, models = [], {}
@@ -533,6 +538,8 @@ def main() -> None:
                              f"{variant_name(BASELINE_VARIANT)} always runs too); default: all")
     parser.add_argument("--compare-only", action="store_true",
                         help="only the backend x restarts comparison (its own JSON and docs section: *_compare)")
+    parser.add_argument("--tag", default="",
+                        help="--compare integration: names its JSON and section (e.g. threads1 for a --threads 1 run)")
     parser.add_argument("--compare", choices=["integration"],
                         help="integration: only full-state vs kinematic moment matching (issue 63), at --compare-sizes")
     parser.add_argument("--aircraft-inducing", type=int, default=300,

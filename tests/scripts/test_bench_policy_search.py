@@ -15,6 +15,8 @@ from pathlib import Path
 
 import pytest
 
+from tests.scripts.load import script
+
 ROOT = Path(__file__).resolve().parents[2]
 SCRIPT = ROOT / "scripts" / "bench_policy_search.py"
 TINY = [
@@ -144,3 +146,9 @@ def test_smallest_integration_comparison_times_delta_and_speed_on_the_same_model
     assert aircraft["kinematics"]["positions"] == [0, 1, 2, 3, 4, 5]
     assert aircraft["round_ratio"] == aircraft["delta"]["round_s"] / aircraft["speed"]["round_s"]
     assert "### Full-state vs kinematic moment matching" in done.stdout and "Aircraft (quadcopter" in done.stdout
+
+
+def test_the_integration_comparison_names_its_files_by_device_and_tag() -> None:
+    bench = script("bench_policy_search")
+    assert bench.integration_suffix("cpu") == "_integration"
+    assert bench.integration_suffix("cpu", "threads1") == "_integration-threads1"
