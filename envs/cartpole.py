@@ -139,7 +139,7 @@ class CartPoleSwingUpEnv(gymnasium.Env):
       (default 0).
     - `reward_width`: σ_c of the reward in m (default 0.25).
     - `track_limit`: half the track's length in m: the episode terminates once |x| exceeds it
-      (default `None`, an unbounded track; `task=cartpole_track` sets 0.5).
+      (default `None`, an unbounded track; `task=cartpole_track` sets 0.7).
     - `render_mode`: `None` or `"rgb_array"`.
 
     ```python

@@ -52,7 +52,7 @@ TASK_FILES = [
      "source 0.5; targets 0.8, 1.0, 1.5, 2.0 kg"],
     ["`cartpole_dt005`", "the same at 0.05 s, 100 steps", "`task.env.pole_mass`",
      "the [particle recipe](particles.md)'s task"],
-    ["`cartpole_track`", "the same on a ±0.5 m track (`track_limit`)", "`task.env.pole_mass`",
+    ["`cartpole_track`", "the same on a ±0.7 m track (`track_limit`)", "`task.env.pole_mass`",
      "issue 64's [state constraints](byo-env.md#state-constraints) benchmark"],
     ["`mountaincar`", "`qtl/MountainCar-v0`", "`task.env.power`", "source 1.0; targets 0.5, 1.5, 3.0"],
     ["`quadcopter`", "`qtl/Quadcopter-v0`", "the vehicle (family `aircraft`)", "the aircraft transfer's source"],

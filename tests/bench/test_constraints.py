@@ -119,7 +119,7 @@ def test_constraint_figures_of_a_run_directory(tmp_path: Path) -> None:
 
 
 def test_declared_bounds_of_the_shipped_tasks_and_of_the_switched_off_arm() -> None:
-    assert declared_bounds(["task=cartpole_track"]) == [Bound(0, -0.5, 0.5)]
+    assert declared_bounds(["task=cartpole_track"]) == [Bound(0, -0.7, 0.7)]
     assert declared_bounds(["task=cartpole_track", "task.constraints=[]"]) == []
     assert declared_bounds(["task=inverted_pendulum"]) == [Bound(1, -0.2, 0.2)]
     assert declared_bounds(["task=cartpole"]) == []

@@ -35,7 +35,7 @@ def summaries(results: list[dict]) -> dict[str, dict]:
 
 def test_the_task_file_exists_and_declares_what_the_arms_switch() -> None:
     text = (ROOT / "configs" / "task" / f"{bench_constraints.TASK}.yaml").read_text()
-    assert "constraints:" in text and "kind: terminate" in text and "track_limit: 0.5" in text
+    assert "constraints:" in text and "kind: terminate" in text and "track_limit: 0.7" in text
     assert bench_constraints.ARMS == {"without": ["task.constraints=[]"], "with": []}
 
 
